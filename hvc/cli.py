@@ -1,0 +1,46 @@
+"""`hvc-run`: compose the config with Hydra, validate it, dispatch the stage. Nothing else."""
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from hvc.config import CONF_DIR, ConfigError, check_group_overrides, validate
+
+log = logging.getLogger("hvc")
+
+
+@hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
+def _run(cfg: DictConfig) -> None:
+    try:
+        validate(cfg)
+    except ConfigError as error:
+        print(f"hvc-run: error: {error}", file=sys.stderr)
+        sys.exit(2)
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if cfg.stage == "rollout":
+        from hvc.runtime.rollout import run_rollout
+
+        summary = run_rollout(cfg, run_dir)
+    else:  # validate() admits only known stages
+        raise AssertionError(cfg.stage)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    log.info("run dir %s: %s", run_dir, summary)
+
+
+def main() -> None:
+    try:
+        check_group_overrides(a for a in sys.argv[1:] if not a.startswith("-"))
+    except ConfigError as error:
+        print(f"hvc-run: error: {error}", file=sys.stderr)
+        sys.exit(2)
+    _run()
+
+
+if __name__ == "__main__":
+    main()

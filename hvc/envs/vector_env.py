@@ -1,0 +1,144 @@
+"""Vectorised envs: one FastEnv per worker process (spawn start method).
+
+Spawn, not fork: each worker imports mujoco and creates its GL context itself, which
+is what EGL and OSMesa need. Workers ignore SIGINT so Ctrl-C reaches only the parent,
+which then shuts them down; a worker that raises or dies surfaces as a WorkerError
+naming the worker and the task instead of a hang.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import signal
+import traceback
+from typing import Any, Mapping
+
+import numpy as np
+
+_POLL_SECONDS = 1.0
+
+
+class WorkerError(RuntimeError):
+    pass
+
+
+def _worker(conn, index: int, task, body, render_settings, seed: int) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        from hvc.envs.fast_env import FastEnv
+
+        env = FastEnv.build(task, body, render_settings, seed=seed)
+        conn.send(("ready", {"action_size": env.action_size, "action_low": env.action_low,
+                             "action_high": env.action_high, "observation_sizes": env.observation_sizes}))
+        while True:
+            command, payload = conn.recv()
+            if command == "reset":
+                conn.send(("ok", env.reset()))
+            elif command == "step":
+                obs, reward, discount, done = env.step(payload)
+                info = {}
+                if done:
+                    info = {"episode_return": env.episode_return, "episode_length": env.episode_steps}
+                    obs = env.reset()
+                conn.send(("ok", (obs, reward, discount, done, info)))
+            elif command == "crash":  # for tests: a worker failing mid-run
+                raise RuntimeError(str(payload))
+            elif command == "close":
+                env.close()
+                conn.send(("ok", None))
+                return
+    except (EOFError, KeyboardInterrupt, BrokenPipeError):
+        return
+    except Exception:  # noqa: BLE001 - forwarded to the parent with its traceback
+        try:
+            conn.send(("error", traceback.format_exc()))
+        except (BrokenPipeError, OSError):
+            pass
+
+
+class VectorEnv:
+    """`num_envs` FastEnvs stepping in parallel; auto-resets finished episodes.
+
+    `step(actions)` returns stacked observations, rewards, discounts, dones and a list of
+    per-env info dicts holding `episode_return`/`episode_length` when an episode ended.
+    """
+
+    def __init__(self, task: Mapping[str, Any], body: Mapping[str, Any],
+                 render_settings: Mapping[str, Any] | None, num_envs: int, seed: int = 0):
+        self.task_name = task["name"]
+        self.num_envs = num_envs
+        ctx = mp.get_context("spawn")
+        self._conns, self._procs = [], []
+        for i in range(num_envs):
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_worker, args=(child, i, dict(task), dict(body),
+                                                      None if render_settings is None else dict(render_settings),
+                                                      seed + i), daemon=True, name=f"hvc-env-{i}")
+            proc.start()
+            child.close()
+            self._conns.append(parent)
+            self._procs.append(proc)
+        specs = [self._receive(i) for i in range(num_envs)]
+        self.action_size = specs[0]["action_size"]
+        self.action_low, self.action_high = specs[0]["action_low"], specs[0]["action_high"]
+        self.observation_sizes = specs[0]["observation_sizes"]
+        self.closed = False
+
+    def _receive(self, index: int):
+        conn, proc = self._conns[index], self._procs[index]
+        while not conn.poll(_POLL_SECONDS):
+            if not proc.is_alive():
+                self.close()
+                raise WorkerError(f"env worker {index} (task={self.task_name}) died with exit code {proc.exitcode}")
+        try:
+            status, payload = conn.recv()
+        except EOFError:
+            self.close()
+            raise WorkerError(f"env worker {index} (task={self.task_name}) closed its pipe") from None
+        if status == "error":
+            self.close()
+            raise WorkerError(f"env worker {index} (task={self.task_name}) failed:\n{payload}")
+        return payload
+
+    @staticmethod
+    def _stack(observations: list[dict]) -> dict[str, np.ndarray]:
+        return {k: np.stack([o[k] for o in observations]) for k in observations[0]}
+
+    def reset(self) -> dict[str, np.ndarray]:
+        for conn in self._conns:
+            conn.send(("reset", None))
+        return self._stack([self._receive(i) for i in range(self.num_envs)])
+
+    def step(self, actions: np.ndarray):
+        for conn, action in zip(self._conns, actions):
+            conn.send(("step", np.asarray(action)))
+        results = [self._receive(i) for i in range(self.num_envs)]
+        obs, rewards, discounts, dones, infos = zip(*results)
+        return (self._stack(list(obs)), np.asarray(rewards, np.float32), np.asarray(discounts, np.float32),
+                np.asarray(dones, bool), list(infos))
+
+    def random_actions(self, rng: np.random.Generator) -> np.ndarray:
+        return rng.uniform(self.action_low, self.action_high, (self.num_envs, self.action_size)).astype(np.float32)
+
+    def close(self) -> None:
+        if getattr(self, "closed", False):
+            return
+        self.closed = True
+        for conn, proc in zip(self._conns, self._procs):
+            if proc.is_alive():
+                try:
+                    conn.send(("close", None))
+                except (BrokenPipeError, OSError):
+                    pass
+        for proc in self._procs:
+            proc.join(timeout=5)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(timeout=5)
+        for conn in self._conns:
+            conn.close()
+
+    def __enter__(self) -> "VectorEnv":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
