@@ -107,9 +107,10 @@ class FastEnv:
         return cls(layouts, task, body, render_settings, seed, render)
 
     @classmethod
-    def from_composer(cls, env, task, body, render_settings=None, seed: int = 0) -> "FastEnv":
+    def from_composer(cls, env, task, body, render_settings=None, seed: int = 0,
+                      render: bool | None = None) -> "FastEnv":
         """A fast env on the composer env's current model (state not copied), for tests."""
-        return cls([layout_from_composer(env, task, body)], task, body, render_settings, seed)
+        return cls([layout_from_composer(env, task, body)], task, body, render_settings, seed, render)
 
     @property
     def model(self) -> mujoco.MjModel:

@@ -41,7 +41,7 @@ class WalkerPlacement:
             self.slide_adr = None
         else:  # rolling ball: slide joints root_x, root_y on the attachment frame
             self.free_adr = None
-            joints = [walker.mjcf_model.find("joint", n) for n in ("root_x", "root_y")]
+            joints = list(walker._root_joints[:2])  # made by create_root_joints on the attachment frame
             self.slide_adr = np.asarray(physics.model.jnt_qposadr[physics.bind(joints).element_id])
 
     def place(self, qpos: np.ndarray, xy, yaw: float | None) -> None:

@@ -1,0 +1,107 @@
+import itertools
+import subprocess
+import sys
+
+import pytest
+
+from hvc.config import ConfigError, compose, group_options
+
+TASKS = group_options("task")
+CONTROLLERS = group_options("controller")
+BODIES = group_options("body")
+
+
+def test_groups_have_the_options_the_paper_needs():
+    assert set(TASKS) >= {"go_to_target", "walls", "gaps", "forage", "heterogeneous_forage", "tracking"}
+    assert set(CONTROLLERS) == {"steerable", "switching", "fragments", "query", "end_to_end"}
+    assert set(BODIES) >= {"cmu_humanoid", "cmu_humanoid_2020", "rolling_ball"}
+
+
+@pytest.mark.parametrize("task,controller,body", list(itertools.product(TASKS, CONTROLLERS, BODIES)))
+def test_every_combination_composes_or_fails_in_one_line(task, controller, body):
+    overrides = [f"task={task}", f"controller={controller}", f"body={body}"]
+    humanoid_needed = controller != "end_to_end"
+    should_fail = task == "tracking" or (humanoid_needed and body == "rolling_ball")
+    if should_fail:
+        with pytest.raises(ConfigError) as error:
+            compose(overrides)
+        message = str(error.value)
+        assert "\n" not in message and "allowed" in message
+        assert (body in message) or (task in message)
+    else:
+        cfg = compose(overrides)
+        assert cfg.task.name == task and cfg.controller.name == controller and cfg.body.name == body
+        assert cfg.algorithm.name in cfg.controller.algorithms  # each controller brings its learner
+
+
+def test_table_a1_lives_with_each_task():
+    expected = {"go_to_target": (10, 128, [128, 1], 0.99, 10**6), "walls": (20, 128, [128, 1], 0.99, 10**4),
+                "gaps": (20, 128, [128, 1], 0.99, 10**4), "forage": (50, 256, [200, 200, 1], 0.995, 10**4),
+                "heterogeneous_forage": (200, 256, [200, 200, 1], 0.99, 10**5)}
+    for task, (unroll, lstm, mlp, gamma, replay) in expected.items():
+        agent = compose([f"task={task}"]).task.agent
+        assert (agent.unroll, agent.lstm_size, list(agent.value_mlp), agent.gamma, agent.replay_size) == \
+               (unroll, lstm, mlp, gamma, replay)
+
+
+def test_tasks_bring_their_clip_sets_and_timesteps():
+    assert compose(["task=gaps"]).clips.name == "gaps"
+    assert compose(["task=walls"]).clips.name == "go_to_target"
+    assert compose(["task=gaps", "clips=forage"]).clips.name == "forage"  # command line wins
+    for task in ("go_to_target", "walls", "gaps", "forage"):
+        cfg = compose([f"task={task}"])
+        assert (cfg.task.control_timestep, cfg.task.physics_timestep) == (0.03, 0.005)
+    assert compose(["task=heterogeneous_forage"]).task.physics_timestep == 0.001
+
+
+@pytest.mark.parametrize("value", [1, 3, 10, 57])
+def test_fragment_len_accepts_any_positive_integer(value):
+    cfg = compose([f"fragment_len={value}"])
+    assert cfg.controller.fragment_len == value
+
+
+@pytest.mark.parametrize("value", ["0", "-3", "2.5", "abc"])
+def test_fragment_len_rejects_non_positive_or_non_integer(value):
+    with pytest.raises(ConfigError, match="fragment_len"):
+        compose([f"fragment_len={value}"])
+
+
+def test_unknown_group_option_names_the_allowed_ones():
+    with pytest.raises(ConfigError) as error:
+        compose(["task=moon_landing"])
+    assert "moon_landing" in str(error.value) and "go_to_target" in str(error.value)
+
+
+def test_wrong_algorithm_for_controller_fails():
+    with pytest.raises(ConfigError, match="allowed: vtrace"):
+        compose(["controller=fragments", "algorithm=svg0_retrace"])
+
+
+def _hvc_run(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "hvc.cli", *args], capture_output=True, text=True, cwd=cwd,
+                          timeout=300)
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["body=rolling_ball", "controller=fragments"], "rolling_ball"),
+    (["fragment_len=0"], "fragment_len"),
+    (["task=nowhere"], "nowhere"),
+    (["stage=dance"], "dance"),
+])
+def test_cli_rejects_bad_values_with_one_line_before_work(tmp_path, args, needle):
+    result = _hvc_run(*args, cwd=tmp_path)
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert needle in lines[0] and ("allowed" in lines[0] or "positive integer" in lines[0])
+    assert not (tmp_path / "outputs").exists() or not list((tmp_path / "outputs").rglob("metrics.csv"))
+
+
+def test_cli_help_lists_groups_and_cfg_prints_composed_config(tmp_path):
+    help_text = _hvc_run("--help", cwd=tmp_path).stdout
+    for group in ("body", "task", "controller", "algorithm", "clips", "reward"):
+        assert f"{group}:" in help_text
+    assert "heterogeneous_forage" in help_text and "end_to_end" in help_text
+    shown = _hvc_run("--cfg", "job", "controller=fragments", "task=gaps", cwd=tmp_path)
+    assert shown.returncode == 0
+    assert "name: gaps" in shown.stdout and "name: fragments" in shown.stdout
