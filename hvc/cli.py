@@ -8,7 +8,7 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from hvc.config import CONF_DIR, ConfigError, check_group_overrides, validate
 
@@ -23,6 +23,8 @@ def _run(cfg: DictConfig) -> None:
         print(f"hvc-run: error: {error}", file=sys.stderr)
         sys.exit(2)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
+    # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
+    (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     if cfg.stage == "rollout":
         from hvc.runtime.rollout import run_rollout
 

@@ -83,17 +83,27 @@ class VectorEnv:
         self.observation_sizes = specs[0]["observation_sizes"]
         self.closed = False
 
+    def _send(self, index: int, message) -> None:
+        try:
+            self._conns[index].send(message)
+        except OSError:  # broken pipe / reset: the worker is gone
+            self._procs[index].join(timeout=1)
+            code = self._procs[index].exitcode
+            self.close()
+            raise WorkerError(f"env worker {index} (task={self.task_name}) died with exit code {code}") from None
+
     def _receive(self, index: int):
         conn, proc = self._conns[index], self._procs[index]
-        while not conn.poll(_POLL_SECONDS):
-            if not proc.is_alive():
-                self.close()
-                raise WorkerError(f"env worker {index} (task={self.task_name}) died with exit code {proc.exitcode}")
         try:
+            while not conn.poll(_POLL_SECONDS):
+                if not proc.is_alive():
+                    raise EOFError
             status, payload = conn.recv()
-        except EOFError:
+        except (EOFError, OSError):
+            proc.join(timeout=1)
             self.close()
-            raise WorkerError(f"env worker {index} (task={self.task_name}) closed its pipe") from None
+            raise WorkerError(f"env worker {index} (task={self.task_name}) died "
+                              f"with exit code {proc.exitcode}") from None
         if status == "error":
             self.close()
             raise WorkerError(f"env worker {index} (task={self.task_name}) failed:\n{payload}")
@@ -104,13 +114,13 @@ class VectorEnv:
         return {k: np.stack([o[k] for o in observations]) for k in observations[0]}
 
     def reset(self) -> dict[str, np.ndarray]:
-        for conn in self._conns:
-            conn.send(("reset", None))
+        for i in range(self.num_envs):
+            self._send(i, ("reset", None))
         return self._stack([self._receive(i) for i in range(self.num_envs)])
 
     def step(self, actions: np.ndarray):
-        for conn, action in zip(self._conns, actions):
-            conn.send(("step", np.asarray(action)))
+        for i, action in enumerate(actions):
+            self._send(i, ("step", np.asarray(action)))
         results = [self._receive(i) for i in range(self.num_envs)]
         obs, rewards, discounts, dones, infos = zip(*results)
         return (self._stack(list(obs)), np.asarray(rewards, np.float32), np.asarray(discounts, np.float32),

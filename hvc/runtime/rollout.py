@@ -50,6 +50,7 @@ def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
                     sps = steps / (time.perf_counter() - start)
                     metrics.log(steps, {"steps_per_second": sps})
                     bar.set_postfix(sps=f"{sps:.0f}", ret=f"{np.mean(returns[-10:]):.2f}" if returns else "-")
+            metrics.log(steps, {"steps_per_second": steps / (time.perf_counter() - start)})
         finally:
             env.close()
     summary = {"env_steps": steps, "episodes": len(returns),

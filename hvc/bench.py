@@ -1,0 +1,145 @@
+"""`hvc-bench`: env throughput against the raw physics ceiling, measured in one run.
+
+Per task: the raw `mj_step` rate on the same compiled model (the ceiling, expressed in
+control steps/s), the hvc fast env's control steps/s with random actions including
+resets, dm_control composer's on the same task, and the mean reset time of each. Then
+64x64 camera frames/s on gaps with the default and the fast render settings.
+Ratios, not absolute times, are the numbers to compare across machines.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from hvc.config import compose  # noqa: E402
+from hvc.envs.builders import build_composer_env  # noqa: E402
+from hvc.envs.fast_env import FastEnv  # noqa: E402
+from hvc.envs.render import CameraRenderer  # noqa: E402
+
+TASKS = ("go_to_target", "walls", "gaps", "forage", "heterogeneous_forage")
+EPISODE_CAP = 40  # control steps; random actions make the humanoid fall within about 15-20
+
+
+def _plain(cfg, key):
+    from omegaconf import OmegaConf
+    return OmegaConf.to_container(cfg[key], resolve=True)
+
+
+def hvc_sps(env: FastEnv, seconds: float):
+    """Fast env control steps/s with random actions including resets, the mean reset ms,
+    and the episodes it ran (start state + actions) so the ceiling replays the same physics."""
+    episodes, reset_time, n, length = [], 0.0, 0, 0
+    env.reset()
+    episodes.append((env.data.qpos.copy(), env.data.qvel.copy(), env.model, []))
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        action = env.random_action()
+        episodes[-1][3].append(action)
+        done = env.step(action)[3]
+        n += 1
+        length += 1
+        if done or length >= EPISODE_CAP:
+            r0 = time.perf_counter()
+            env.reset()
+            reset_time += time.perf_counter() - r0
+            episodes.append((env.data.qpos.copy(), env.data.qvel.copy(), env.model, []))
+            length = 0
+    sps = n / (time.perf_counter() - t0)
+    return sps, 1000 * reset_time / max(len(episodes) - 1, 1), episodes
+
+
+def ceiling_sps(env: FastEnv, episodes) -> float:
+    """Raw mj_step replaying the same episodes (same models, states and actions), in control steps/s."""
+    actuators, substeps, n = env.layout.actuators, env.n_substeps, 0
+    datas = {id(layout.model): mujoco.MjData(layout.model) for layout in env.layouts}
+    t0 = time.perf_counter()
+    for qpos, qvel, model, actions in episodes:
+        data = datas[id(model)]
+        data.qpos[:], data.qvel[:], data.time = qpos, qvel, 0.0
+        for action in actions:
+            data.ctrl[actuators] = action
+            mujoco.mj_step(model, data, substeps)
+        n += len(actions)
+    return n / (time.perf_counter() - t0)
+
+
+def composer_sps(task, body, seconds: float, rng) -> tuple[float, float]:
+    """dm_control composer's control steps/s (random actions, resets included) and reset ms."""
+    env = build_composer_env(task, body, seed=0)
+    spec = env.action_spec()
+    resets, reset_time, n, length = 0, 0.0, 0, 0
+    env.reset()
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        step = env.step(rng.uniform(spec.minimum, spec.maximum))
+        n += 1
+        length += 1
+        if step.last() or length >= EPISODE_CAP:
+            r0 = time.perf_counter()
+            env.reset()
+            reset_time += time.perf_counter() - r0
+            resets += 1
+            length = 0
+    sps = n / (time.perf_counter() - t0)
+    env.close()
+    return sps, 1000 * reset_time / max(resets, 1)
+
+
+def render_fps(settings_name: str, seconds: float) -> float:
+    cfg = compose(["task=gaps", f"render={settings_name}", "task.layout_pool=1"])
+    env = FastEnv.build(_plain(cfg, "task"), _plain(cfg, "body"), _plain(cfg, "render"), render=False)
+    env.reset()
+    renderer = CameraRenderer(env.model, env.layout.camera, _plain(cfg, "render"))
+    out = np.empty((64, 64, 3), np.uint8)
+    renderer.render(env.data, out=out)
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        renderer.render(env.data, out=out)
+        n += 1
+    fps = n / (time.perf_counter() - t0)
+    renderer.close()
+    env.close()
+    return fps
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
+    parser.add_argument("--seconds", type=float, default=3.0, help="per measurement")
+    parser.add_argument("--no-composer", action="store_true", help="skip dm_control composer (slow resets)")
+    parser.add_argument("--no-render", action="store_true")
+    args = parser.parse_args(argv)
+    rng = np.random.default_rng(0)
+    lines = []
+    print(f"{'task':<22}{'ceiling sps':>12}{'hvc sps':>10}{'composer sps':>14}{'hvc/ceil':>10}"
+          f"{'reset ms':>10}{'composer reset ms':>19}")
+    for name in args.tasks:
+        cfg = compose([f"task={name}"])
+        task, body, render = (_plain(cfg, k) for k in ("task", "body", "render"))
+        env = FastEnv.build(task, body, render, seed=0, render=False)
+        sps, reset_ms, episodes = hvc_sps(env, args.seconds)
+        ceiling = ceiling_sps(env, episodes)
+        env.close()
+        comp, comp_reset = (float("nan"),) * 2 if args.no_composer else composer_sps(task, body, args.seconds, rng)
+        print(f"{name:<22}{ceiling:>12.0f}{sps:>10.0f}{comp:>14.0f}{sps / ceiling:>10.2f}"
+              f"{reset_ms:>10.2f}{comp_reset:>19.1f}", flush=True)
+        lines.append(f"bench task={name} ceiling_sps={ceiling:.0f} hvc_sps={sps:.0f} composer_sps={comp:.0f} "
+                     f"hvc/ceiling={sps / ceiling:.2f} composer/ceiling={comp / ceiling:.2f} "
+                     f"reset_ms={reset_ms:.2f} composer_reset_ms={comp_reset:.1f}")
+    if not args.no_render:
+        for settings in ("default", "fast"):
+            lines.append(f"bench render task=gaps settings={settings} size=64x64 "
+                         f"fps={render_fps(settings, args.seconds):.0f}")
+    print()
+    for line in lines:
+        print(line)
+
+
+if __name__ == "__main__":
+    main()
