@@ -22,7 +22,39 @@ from dm_control.locomotion.walkers import cmu_humanoid, jumping_ball
 from labmaze import fixed_maze
 
 BODY_KINDS = ("cmu_humanoid", "rolling_ball")
-TASK_KINDS = ("go_to_target", "corridor", "maze")
+TASK_KINDS = ("go_to_target", "corridor", "maze", "tracking")
+
+
+class FloorTask(composer.Task):
+    """The walker alone on dm_control's floor: the model for motion-capture tracking.
+
+    dm_control's own tracking task (reference_pose.tracking) loads its clips through
+    the HDF5 loader at construction and steps through composer; our tracking logic
+    (hvc.lowlevel.tracking) runs on the fast path instead, so this task only has to
+    build the model and mirror the contact bookkeeping of the other tasks.
+    """
+
+    def __init__(self, walker, arena, physics_timestep: float, control_timestep: float):
+        self._walker = walker
+        self._arena = arena
+        self._walker.create_root_joints(self._arena.attach(self._walker))
+        for obs in (self._walker.observables.proprioception + self._walker.observables.kinematic_sensors):
+            obs.enabled = True
+        self.set_timesteps(physics_timestep=physics_timestep, control_timestep=control_timestep)
+
+    @property
+    def root_entity(self):
+        return self._arena
+
+    def initialize_episode(self, physics, random_state):
+        self._walker.reinitialize_pose(physics, random_state)
+        foot = set(self._walker.ground_contact_geoms)
+        self._walker_nonfoot_geomids = set(physics.bind(
+            [g for g in self._walker.mjcf_model.find_all("geom") if g not in foot]).element_id)
+        self._ground_geomids = set(physics.bind(self._arena.ground_geoms).element_id)
+
+    def get_reward(self, physics):
+        return 0.0
 
 
 def build_walker(body: Mapping[str, Any]):
@@ -112,7 +144,9 @@ def build_task(task: Mapping[str, Any], walker) -> composer.Task:
             walker=walker, maze_arena=arena, target_builders=builders,
             target_type_rewards=[float(r) for r in task["target_rewards"]],
             target_type_proportions=[1] * len(builders), shuffle_target_builders=False, **common)
-    raise ValueError(f"task.kind={kind!r} has no environment yet; allowed: {', '.join(TASK_KINDS)}")
+    if kind == "tracking":
+        return FloorTask(walker, floors.Floor(size=tuple(task["arena_size"])), **timesteps)
+    raise ValueError(f"task.kind={kind!r} has no environment; allowed: {', '.join(TASK_KINDS)}")
 
 
 def build_composer_env(task: Mapping[str, Any], body: Mapping[str, Any], seed: int | None = None):

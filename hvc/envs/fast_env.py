@@ -39,12 +39,16 @@ class Layout:
 def layout_from_composer(env, task: Mapping[str, Any], body: Mapping[str, Any]) -> Layout:
     """Captures the composer env's current compiled model (call after env.reset())."""
     kind = task["kind"]
-    if kind not in LOGIC_BY_KIND:
-        raise ValueError(f"task.kind={kind!r} has no fast env; allowed: {', '.join(LOGIC_BY_KIND)}")
+    if kind == "tracking":  # motion-capture tracking lives with the low level
+        from hvc.lowlevel.tracking import TrackingLogic as logic_class
+    elif kind in LOGIC_BY_KIND:
+        logic_class = LOGIC_BY_KIND[kind]
+    else:
+        raise ValueError(f"task.kind={kind!r} has no fast env; allowed: {', '.join([*LOGIC_BY_KIND, 'tracking'])}")
     physics = env.physics
     walker = env.task._walker
     proprio = Proprioception(walker, physics, list(body["proprio"]))
-    logic = LOGIC_BY_KIND[kind](task, env)  # resolves ids on this model
+    logic = logic_class(task, env)  # resolves ids on this model
     actuators = np.atleast_1d(physics.bind(list(walker.actuators)).element_id).astype(np.intp)
     camera = None
     if task.get("vision"):

@@ -1,0 +1,134 @@
+"""Time-indexed single-clip tracking (Sec. 2.1) on the fast env path.
+
+Episodes start at a random step of the reference with its pose and velocities; the
+policy sees proprioception plus the normalised time in the clip (a sawtooth phase for
+looped gait cycles); the reward is the paper's tracking reward against the reference
+at the new time; the episode fails when any body part other than the hands and feet
+touches the ground, and ends at the clip's end.
+"""
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+from dm_control import mjcf
+
+from hvc.envs.task_logic import TaskLogic, _ContactTermination
+from hvc.lowlevel.reward import TrackingFeatures, TrackingReward
+from hvc.mocap.reference import Reference, find_cycle, from_clip, loop_cycle
+
+# Bodies allowed to touch the ground: feet and hands (the paper's termination rule).
+ALLOWED_CONTACT_BODIES = ("lfoot", "ltoes", "rfoot", "rtoes", "lhand", "lfingers", "lthumb",
+                          "rhand", "rfingers", "rthumb")
+
+
+def build_reference(entry: Mapping[str, Any], mocap_file: str, cycle_repeats: int = 4,
+                    cycle_blend: int = 4) -> Reference:
+    """The reference for one clip-set entry: its frame range, looped if it is cyclic."""
+    from hvc.mocap.clips import load_clip
+
+    clip = load_clip(mocap_file, entry["id"])
+    start, end = int(entry.get("start") or 0), entry.get("end")
+    if not entry.get("cyclic"):
+        return from_clip(clip, start, None if end is None else int(end))
+    whole = from_clip(clip)
+    segment = whole.joints[start:end]
+    cycle = entry.get("cycle")
+    if cycle is None:  # find the most periodic window (0.4-1.2 s covers run and walk cycles)
+        lo, hi = int(round(0.4 / whole.dt)), int(round(1.2 / whole.dt))
+        s, length = find_cycle(segment, lo, min(hi, len(segment) - cycle_blend - 1), margin=cycle_blend)
+        cycle = (start + s, length)
+    return loop_cycle(whole, int(cycle[0]), int(cycle[1]), blend=cycle_blend, repeats=cycle_repeats)
+
+
+class TrackingLogic(TaskLogic):
+    observation_size = 1
+
+    def __init__(self, cfg: Mapping[str, Any], env, reference: Reference | None = None):
+        task, physics = env.task, env.physics
+        walker = task._walker
+        model = physics.model.ptr
+        allowed = {g for name in ALLOWED_CONTACT_BODIES
+                   for g in (walker.mjcf_model.find("body", name).find_all("geom", immediate_children_only=True))}
+        body_geoms = [g for g in walker.mjcf_model.find_all("geom") if g not in allowed]
+        self.contact_failure = _ContactTermination(model, physics.bind(body_geoms).element_id,
+                                                   task._ground_geomids)
+        free = mjcf.get_frame_freejoint(walker.mjcf_model)
+        self.root_qpos = int(model.jnt_qposadr[physics.bind(free).element_id])
+        self.root_dof = int(model.jnt_dofadr[physics.bind(free).element_id])
+        joint_ids = physics.bind(list(walker.mocap_joints)).element_id
+        self.joint_qpos = np.asarray(model.jnt_qposadr[joint_ids], np.intp)
+        self.joint_dof = np.asarray(model.jnt_dofadr[joint_ids], np.intp)
+        self.root = int(physics.bind(walker.root_body).element_id)
+        self.end_effectors = np.asarray(physics.bind(list(walker.end_effectors)).element_id, np.intp)
+        self.actuators = np.asarray(physics.bind(list(walker.actuators)).element_id, np.intp)
+        # position-control mapping (CMUHumanoidPositionControlled.cmu_pose_to_actuation)
+        self.actuator_order = np.asarray(walker.actuator_order)
+        self.act_offset, self.act_scale = np.asarray(walker._offset), np.asarray(walker._scale)
+        self.has_act = model.na > 0  # V2020 actuators filter their input
+        self.reference = reference if reference is not None else build_reference(
+            cfg["clip"], cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)), int(cfg.get("cycle_blend", 4)))
+        self.reward_fn = TrackingReward(cfg["reward"])
+        self.random_start = bool(cfg.get("random_start", True))
+        self.t = 0
+        self.failure = False
+        self.last_terms: dict[str, float] = {}
+
+    # -- pose bookkeeping ------------------------------------------------------------
+    def pose_to_actuation(self, joints: np.ndarray) -> np.ndarray:
+        """The position-control action that drives the joints to `joints` (mocap order)."""
+        return (2 * joints[self.actuator_order] - self.act_offset) / self.act_scale
+
+    def set_reference_state(self, data, t: int) -> None:
+        ref = self.reference
+        data.qpos[self.root_qpos:self.root_qpos + 3] = ref.position[t]
+        data.qpos[self.root_qpos + 3:self.root_qpos + 7] = ref.quaternion[t]
+        data.qpos[self.joint_qpos] = ref.joints[t]
+        data.qvel[self.root_dof:self.root_dof + 3] = ref.velocity[t]
+        data.qvel[self.root_dof + 3:self.root_dof + 6] = ref.angular_velocity[t]
+        data.qvel[self.joint_dof] = ref.joints_velocity[t]
+        if self.has_act:
+            data.act[:] = np.clip(self.pose_to_actuation(ref.joints[t]), -1, 1)
+
+    def body_features(self, data) -> TrackingFeatures:
+        xmat = data.xmat[self.root].reshape(3, 3)
+        return TrackingFeatures(
+            joints=data.qpos[self.joint_qpos], joints_velocity=data.qvel[self.joint_dof],
+            quaternion=data.qpos[self.root_qpos + 3:self.root_qpos + 7],
+            end_effectors=(data.xpos[self.end_effectors] - data.xpos[self.root]) @ xmat,
+            velocity=data.qvel[self.root_dof:self.root_dof + 3],
+            gyro=data.qvel[self.root_dof + 3:self.root_dof + 6])
+
+    def reference_features(self, t: int) -> TrackingFeatures:
+        ref = self.reference
+        return TrackingFeatures(joints=ref.joints[t], joints_velocity=ref.joints_velocity[t],
+                                quaternion=ref.quaternion[t], end_effectors=ref.end_effectors[t],
+                                velocity=ref.velocity[t], gyro=ref.angular_velocity[t])
+
+    # -- TaskLogic -------------------------------------------------------------------
+    def reset(self, model, data, rng):
+        last = self.reference.num_steps - 1
+        self.t = int(rng.integers(0, last)) if self.random_start else 0
+        self.start = self.t
+        self.set_reference_state(data, self.t)
+        self.failure = False
+
+    def after_step(self, model, data, rng):
+        self.t += 1
+        self.failure = self.contact_failure(data)
+
+    def reward(self, model, data):
+        reward, self.last_terms = self.reward_fn(self.body_features(data), self.reference_features(self.t))
+        return reward
+
+    def terminated(self):
+        return self.failure or self.t >= self.reference.num_steps - 1
+
+    def observation(self, model, data):
+        return np.array([self.reference.phase[self.t]], np.float32)
+
+    @property
+    def completion(self) -> float:
+        """Fraction of the clip remaining at the episode's start that was tracked."""
+        remaining = self.reference.num_steps - 1 - self.start
+        return (self.t - self.start) / remaining if remaining > 0 else 1.0
