@@ -13,11 +13,12 @@ from omegaconf import DictConfig, OmegaConf
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 GROUPS = ("body", "task", "controller", "algorithm", "clips", "reward", "render")
-STAGES = ("rollout",)
+STAGES = ("rollout", "info", "convert", "playback", "openloop")
+MOCAP_STAGES = ("info", "convert", "playback", "openloop")
 # Top-level keys that must be positive integers.
 POSITIVE_INTS = ("fragment_len", "total_steps", "num_envs", "log_every", "video_steps")
 # Task kinds with an environment on the fast path (tracking arrives with the mocap issue).
-RUNNABLE_TASK_KINDS = ("go_to_target", "corridor", "maze")
+RUNNABLE_TASK_KINDS = ("go_to_target", "corridor", "maze", "tracking")
 
 
 class ConfigError(ValueError):
@@ -26,6 +27,14 @@ class ConfigError(ValueError):
 
 def group_options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
+def group_config(group: str, option: str) -> DictConfig:
+    """One option file of a group, without its defaults list (for stages that need a
+    second task config, e.g. playback tracks a clip whatever `task` says)."""
+    cfg = OmegaConf.load(CONF_DIR / group / f"{option}.yaml")
+    cfg.pop("defaults", None)
+    return cfg
 
 
 def check_group_overrides(overrides: Iterable[str]) -> None:
@@ -70,8 +79,13 @@ def validate(cfg: DictConfig) -> None:
     if body.kind == "rolling_ball" and body.camera != "egocentric":
         raise ConfigError(f"body.camera={body.camera!r} does not exist on rolling_ball; allowed: egocentric")
     if cfg.task.kind not in RUNNABLE_TASK_KINDS:
-        raise ConfigError(f"task={cfg.task.name} has no environment yet (it arrives with the motion-capture "
-                          f"issue); allowed: {', '.join(t for t in group_options('task') if t != cfg.task.name)}")
+        raise ConfigError(f"task={cfg.task.name} has no environment; allowed: "
+                          f"{', '.join(t for t in group_options('task') if t != cfg.task.name)}")
+    if (cfg.task.kind == "tracking" or cfg.stage in MOCAP_STAGES) and not body.humanoid:
+        humanoids = [b for b in group_options("body") if OmegaConf.load(CONF_DIR / "body" / f"{b}.yaml").get(
+            "humanoid", True)]
+        raise ConfigError(f"motion-capture tracking needs a CMU humanoid body, not body={body.name}; "
+                          f"allowed: {', '.join(humanoids)}")
     if float(cfg.task.control_timestep) <= 0 or float(cfg.task.physics_timestep) <= 0:
         raise ConfigError("task.control_timestep and task.physics_timestep must be positive")
     ratio = float(cfg.task.control_timestep) / float(cfg.task.physics_timestep)

@@ -1,0 +1,60 @@
+"""Which mocap HDF5 file a run uses, and what is in it.
+
+Search order: an explicit `mocap_file=`; `$HVC_MOCAP_FILE`; dm_control's fitted CMU file
+for the body's model version in `~/.dm_control/` or `$DM_CONTROL_DATA`; our conversion of
+the offline clips (`outputs/mocap/cmu_<version>.h5`, made by `hvc-run stage=convert`,
+or on first use from `../shared/mocap/cmu` when that folder exists).
+"""
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import h5py
+
+log = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+SHARED_CLIPS = REPO_ROOT.parent / "shared" / "mocap" / "cmu"
+DM_CONTROL_FILES = {"2019": "cmu_2019_08756c01.h5", "2020": "cmu_2020_dfe3e9e0.h5"}
+
+
+def converted_file(model_version: str) -> Path:
+    return REPO_ROOT / "outputs" / "mocap" / f"cmu_{model_version}.h5"
+
+
+def find_mocap_file(explicit: str | None, model_version: str = "2019", convert_if_missing: bool = True) -> Path:
+    if explicit:
+        path = Path(explicit).expanduser()
+        if not path.exists():
+            raise FileNotFoundError(f"mocap_file={explicit} does not exist")
+        return path
+    candidates = []
+    if os.environ.get("HVC_MOCAP_FILE"):
+        candidates.append(Path(os.environ["HVC_MOCAP_FILE"]).expanduser())
+    for root in (os.environ.get("DM_CONTROL_DATA"), "~/.dm_control"):
+        if root:
+            candidates.append(Path(root).expanduser() / DM_CONTROL_FILES[str(model_version)])
+    candidates.append(converted_file(str(model_version)))
+    for path in candidates:
+        if path.exists():
+            return path
+    if convert_if_missing and SHARED_CLIPS.is_dir():
+        from hvc.mocap.convert import convert_folder
+
+        out = converted_file(str(model_version))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        log.info("converting the offline clips in %s into %s (once)", SHARED_CLIPS, out)
+        convert_folder(str(SHARED_CLIPS), str(out), walker_version=str(model_version))
+        return out
+    raise FileNotFoundError(
+        "no mocap file: searched " + ", ".join(str(c) for c in candidates)
+        + "; convert clips with `hvc-run stage=convert source=<folder of ASF/AMC/BVH> out=<file.h5>` "
+          "and pass mocap_file=<file.h5>")
+
+
+def clip_lengths(path: str | Path) -> dict[str, int]:
+    """Clip id -> number of steps, from the file's attributes (no trajectory loading)."""
+    with h5py.File(path, "r") as f:
+        return {name: int(group.attrs["num_steps"]) for name, group in f.items() if "num_steps" in group.attrs}
