@@ -45,8 +45,13 @@ class Fragment:
 
 
 def entries_of(clips_cfg: Mapping[str, Any]) -> list[ClipEntry]:
+    """The set's entries: those of the sets it includes (in order), then its own."""
+    from hvc.config import group_config
+
     fields = set(ClipEntry.__dataclass_fields__)
     out = []
+    for included in clips_cfg.get("include") or []:
+        out += entries_of(group_config("clips", included))
     for raw in clips_cfg.get("entries") or []:
         unknown = set(raw) - fields
         if unknown:

@@ -1,0 +1,61 @@
+import math
+
+import numpy as np
+import pytest
+
+from hvc.config import compose
+from hvc.mocap.clip_sets import ClipEntry, entries_of, fragment_keys, fragments, select_entry
+from hvc.mocap.reference import Reference
+
+
+def test_fragments_cut_each_clip_into_ceil_n_over_t():
+    entries = [ClipEntry("CMU_A", "stand", 0, 10), ClipEntry("CMU_B", "run", 5, 12), ClipEntry("CMU_C", "run",
+                                                                                                 cyclic=True, steps=7)]
+    frags = fragments(entries, 3)
+    assert len(frags) == math.ceil(10 / 3) + math.ceil(7 / 3) + math.ceil(7 / 3)
+    first = [f for f in frags if f.clip == 0]
+    assert [f.start for f in first] == [0, 3, 6, 9] and [f.length for f in first] == [3, 3, 3, 1]
+    assert len(fragments(entries, 1)) == 24 and len(fragments(entries, 100)) == 3
+    with pytest.raises(ValueError, match="fragment_len"):
+        fragments(entries, 0)
+
+
+@pytest.mark.parametrize("clip_set,expected", [("go_to_target", 105), ("gaps", 359)])
+def test_paper_fragment_counts_at_length_three(clip_set, expected):
+    """Table A.2: the configured ranges reproduce the paper's fragment counts."""
+    entries = entries_of(compose([f"clips={clip_set}"]).clips)
+    assert len(fragments(entries, 3)) == expected
+
+
+def test_clip_sets_name_ids_ranges_behaviours():
+    for name in ("go_to_target", "forage", "heterogeneous_forage", "gaps", "go_to_target_x2", "go_to_target_x4",
+                 "locomotion_8", "go_to_target_extraneous"):
+        entries = entries_of(compose([f"clips={name}"]).clips)
+        assert entries and all(e.id.startswith("CMU_") and e.behaviour for e in entries)
+        assert all(e.num_steps > 0 for e in entries)
+    base = entries_of(compose(["clips=go_to_target"]).clips)
+    assert [e.behaviour for e in base] == ["stand", "run", "left_turn", "right_turn"]
+    assert entries_of(compose(["clips=go_to_target_x2"]).clips) == base * 2
+    assert entries_of(compose(["clips=go_to_target_x4"]).clips) == base * 4
+
+
+def test_select_entry_by_id_behaviour_or_any_clip():
+    clips = compose(["clips=go_to_target"]).clips
+    assert select_entry(clips, None).behaviour == "stand"
+    run = select_entry(clips, "run")
+    assert run.cyclic and select_entry(clips, run.id) == run
+    assert select_entry(clips, "CMU_999_01") == ClipEntry("CMU_999_01", "clip")
+
+
+def test_fragment_keys_are_start_and_end_features():
+    n = 12
+    rng = np.random.default_rng(0)
+    quats = np.tile([1.0, 0, 0, 0], (n, 1))
+    ref = Reference("x", 0.03, False, np.zeros((n, 56)), np.zeros((n, 56)), np.zeros((n, 3)), quats,
+                    rng.normal(size=(n, 3)), np.zeros((n, 3)), rng.normal(size=(n, 4, 3)), np.linspace(0, 1, n))
+    keys = fragment_keys(ref, [0, 3, 9], 3)
+    assert keys.shape == (3, 2 * (3 + 3 + 12))
+    np.testing.assert_allclose(keys[1, :3], ref.velocity[3])          # identity orientation: world = root frame
+    np.testing.assert_allclose(keys[1, 3:6], [0, 0, 1])               # gravity direction when upright
+    np.testing.assert_allclose(keys[1, 18:21], ref.velocity[6])       # end state = start + length
+    np.testing.assert_allclose(keys[2, 24:36], ref.end_effectors[11].ravel())  # clamped at the clip's end
