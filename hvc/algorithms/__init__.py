@@ -1,0 +1,1 @@
+"""Learners: V-trace actor-critic, SVG(0) with Retrace, Wolpertinger query selection."""
