@@ -38,7 +38,10 @@ def build_reference(entry: Mapping[str, Any], mocap_file: str, cycle_repeats: in
         lo, hi = int(round(0.4 / whole.dt)), int(round(1.2 / whole.dt))
         s, length = find_cycle(segment, lo, min(hi, len(segment) - cycle_blend - 1), margin=cycle_blend)
         cycle = (start + s, length)
-    return loop_cycle(whole, int(cycle[0]), int(cycle[1]), blend=cycle_blend, repeats=cycle_repeats)
+    steps = entry.get("steps")
+    repeats = max(cycle_repeats, -(-int(steps) // int(cycle[1])) if steps else 0)
+    looped = loop_cycle(whole, int(cycle[0]), int(cycle[1]), blend=cycle_blend, repeats=repeats)
+    return looped.segment(0, int(steps)) if steps else looped
 
 
 class TrackingLogic(TaskLogic):
