@@ -11,18 +11,7 @@ from __future__ import annotations
 import numpy as np
 from dm_control import mjcf
 
-
-def _yaw_quat(yaw: float) -> np.ndarray:
-    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+from hvc.rotations import quat_mul, yaw_quat
 
 
 class WalkerPlacement:
@@ -51,7 +40,7 @@ class WalkerPlacement:
             qpos[self.free_adr:self.free_adr + 2] += xy
             if yaw is not None:  # velocities are zero, so rotating them is a no-op
                 quat = qpos[self.free_adr + 3:self.free_adr + 7]
-                qpos[self.free_adr + 3:self.free_adr + 7] = _quat_mul(_yaw_quat(yaw), quat)
+                qpos[self.free_adr + 3:self.free_adr + 7] = quat_mul(yaw_quat(yaw), quat)
         else:
             qpos[self.slide_adr] += xy
 

@@ -13,6 +13,8 @@ from typing import Mapping
 
 import numpy as np
 
+from hvc.rotations import quat_conj, quat_mul
+
 TERMS = ("qpos", "qvel", "ori", "ee", "vel", "gyro")
 
 
@@ -26,19 +28,6 @@ class TrackingFeatures:
     end_effectors: np.ndarray     # (n_ee, 3) egocentric root-to-end-effector vectors
     velocity: np.ndarray          # (3,) global translational velocity of the root
     gyro: np.ndarray              # (3,) root angular velocity, root frame
-
-
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
-
-
-def quat_conj(q: np.ndarray) -> np.ndarray:
-    return np.array([q[0], -q[1], -q[2], -q[3]])
 
 
 def quat_log_norm(q: np.ndarray) -> float:

@@ -12,7 +12,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hvc.lowlevel.reward import quat_mul
+from hvc.mocap.clips import root_heading
+from hvc.rotations import quat_mul, yaw_quat
 
 
 @dataclass(frozen=True)
@@ -60,11 +61,6 @@ def from_clip(clip, start: int = 0, end: int | None = None) -> Reference:
         phase=_linear_phase(len(joints)))
 
 
-def _yaw(q: np.ndarray) -> float:
-    w, x, y, z = q
-    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
-
-
 def _rot_z(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -99,14 +95,15 @@ def loop_cycle(ref: Reference, start: int, length: int, blend: int, repeats: int
     ee[ok] = (1 - w[ok, :, None]) * ee[ok] + w[ok, :, None] * ref.end_effectors[earlier[ok]]
     # joint velocities of the closed loop, by central finite differences around the cycle
     joints_velocity = (np.roll(joints, -1, 0) - np.roll(joints, 1, 0)) / (2 * ref.dt)
-    yaw_drift = _yaw(ref.quaternion[start + length]) - _yaw(ref.quaternion[start])
+    heading = root_heading(ref.quaternion[[start, start + length]])  # the walker faces along its root's z
+    yaw_drift = float(heading[1] - heading[0])
     displacement = ref.position[start + length] - ref.position[start]
     displacement[2] = 0.0
     positions, quats, vels = [], [], []
     origin = ref.position[start].copy()
     for k in range(repeats):
         rot = _rot_z(k * yaw_drift)
-        turn = np.array([np.cos(k * yaw_drift / 2), 0, 0, np.sin(k * yaw_drift / 2)])
+        turn = yaw_quat(k * yaw_drift)
         local = ref.position[idx] - ref.position[start]
         positions.append(origin + local @ rot.T)
         quats.append(np.array([quat_mul(turn, q) for q in ref.quaternion[idx]]))
