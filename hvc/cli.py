@@ -25,6 +25,7 @@ def _run(cfg: DictConfig) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    log.info("stage=%s run dir %s", cfg.stage, run_dir)
     if cfg.stage == "rollout":
         from hvc.runtime.rollout import run_rollout
 
@@ -34,7 +35,6 @@ def _run(cfg: DictConfig) -> None:
 
         summary = STAGES[cfg.stage](cfg, run_dir)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    log.info("run dir %s: %s", run_dir, summary)
 
 
 def main() -> None:

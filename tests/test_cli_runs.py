@@ -52,3 +52,18 @@ def test_rolling_ball_end_to_end_with_two_env_workers(tmp_path):
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     assert "end_to_end" in run_dir.name
     assert pd.read_csv(run_dir / "metrics.csv").env_steps.max() == 40
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+def test_mocap_stages_end_to_end(tmp_path):
+    info = _run("stage=info", "clips=go_to_target", "fragment_len=3", cwd=tmp_path).stdout.strip().splitlines()
+    assert info[-1] == "clips=4 fragments=105"
+    assert sum(line.startswith("clip id=CMU_") for line in info) == 4
+    openloop = _run("stage=openloop", "episodes=3", "clip=left_turn", cwd=tmp_path).stdout
+    assert "openloop clip=CMU_016_41" in openloop and "completion=" in openloop
+    _run("task=tracking", "clip=right_turn", "total_steps=60", cwd=tmp_path)
+    playback = _run("stage=playback", "clip=CMU_016_24", cwd=tmp_path).stdout
+    assert "playback clip=CMU_016_24 steps=83" in playback  # a clip outside the set: all of it
+    videos = list((tmp_path / "outputs").rglob("playback_CMU_016_24.mp4"))
+    assert videos and videos[0].stat().st_size > 1000

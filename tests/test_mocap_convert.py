@@ -17,11 +17,12 @@ import pytest
 from dm_control.locomotion import mocap as dm_mocap
 from dm_control.locomotion.mocap import loader as dm_loader
 from dm_control.suite.utils import parse_amc as dm_parse_amc
+from hvc.mocap.source import SHARED_CLIPS
 from dm_control.utils import transformations as tr
 
 from hvc.mocap import asf_amc, bvh, clips, convert
 
-MOCAP = Path(__file__).resolve().parents[2] / "shared" / "mocap"
+MOCAP = SHARED_CLIPS.parent
 CMU = MOCAP / "cmu"
 DM_TEST_H5 = Path(dm_mocap.__file__).parent / "test_trajectories.h5"
 needs_mocap = pytest.mark.skipif(

@@ -16,7 +16,8 @@ import h5py
 log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-SHARED_CLIPS = REPO_ROOT.parent / "shared" / "mocap" / "cmu"
+# The offline CMU clips: ../shared/mocap next to the checkout, or $HVC_SHARED_MOCAP.
+SHARED_CLIPS = Path(os.environ.get("HVC_SHARED_MOCAP", REPO_ROOT.parent / "shared" / "mocap")) / "cmu"
 DM_CONTROL_FILES = {"2019": "cmu_2019_08756c01.h5", "2020": "cmu_2020_dfe3e9e0.h5"}
 
 

@@ -6,33 +6,17 @@ Each is a thin driver over the library (hvc.mocap, hvc.lowlevel) that prints
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
-
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from hvc.config import group_config
 from hvc.mocap.clip_sets import ClipEntry, entries_of, fragments, resolve, select_entry
 from hvc.mocap.source import find_mocap_file
+from hvc.runtime.env_config import env_dicts
 from hvc.runtime.metrics import MetricsLogger
-
-
-def _plain(node) -> Any:
-    return OmegaConf.to_container(node, resolve=True)
 
 
 def mocap_file_of(cfg: DictConfig) -> Path:
     return find_mocap_file(cfg.mocap_file, str(cfg.body.get("model_version", "2019")))
-
-
-def tracking_env_dicts(cfg: DictConfig, entry: ClipEntry, mocap_file: Path) -> tuple[dict, dict, dict]:
-    """(task, body, render) for tracking one clip entry."""
-    if cfg.task.kind == "tracking":
-        task = _plain(cfg.task)
-    else:  # these stages always track, whatever task the rest of the config names
-        task = _plain(OmegaConf.merge(group_config("task", "tracking"), {"reward": _plain(cfg.reward)}))
-    task.update(clip=entry.as_dict(), mocap_file=str(mocap_file))
-    return task, _plain(cfg.body), _plain(cfg.render)
 
 
 def run_info(cfg: DictConfig, run_dir: Path) -> dict:
@@ -70,9 +54,8 @@ def run_playback(cfg: DictConfig, run_dir: Path) -> dict:
 
     import mujoco
 
-    mocap_file = mocap_file_of(cfg)
     entry = select_entry(cfg.clips, cfg.clip)
-    task, body, render = tracking_env_dicts(cfg, entry, mocap_file)
+    task, body, render = env_dicts(cfg, entry, tracking=True)
     env = FastEnv.build(task, body, render, seed=cfg.seed, render=False)
     logic = env.layout.logic
     camera = CameraRenderer(env.model, "walker/side", {**render, "height": 240, "width": 320})
@@ -98,7 +81,7 @@ def run_openloop(cfg: DictConfig, run_dir: Path) -> dict:
     results = {}
     with MetricsLogger(run_dir / "metrics.csv") as metrics:
         for e in entries:
-            task, body, render = tracking_env_dicts(cfg, e, mocap_file)
+            task, body, render = env_dicts(cfg, e, tracking=True)
             env = FastEnv.build(task, body, render, seed=cfg.seed, render=False)
             scores = evaluate_open_loop(env, cfg.episodes)
             env.close()

@@ -9,24 +9,21 @@ import time
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm import tqdm
 
 from hvc.envs.fast_env import FastEnv
 from hvc.envs.render import CameraRenderer
 from hvc.envs.vector_env import VectorEnv
+from hvc.runtime.env_config import env_dicts
 from hvc.runtime.metrics import MetricsLogger
 from hvc.runtime.video import write_video
 
 VIDEO_CAMERAS = ("walker/back", "walker/side", "walker/egocentric")
 
 
-def _plain(node) -> dict:
-    return OmegaConf.to_container(node, resolve=True)
-
-
 def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
-    task, body, render = _plain(cfg.task), _plain(cfg.body), _plain(cfg.render)
+    task, body, render = env_dicts(cfg)
     rng = np.random.default_rng(cfg.seed)
     returns: list[float] = []
     steps = 0
@@ -62,7 +59,7 @@ def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
 
 def record_video(cfg: DictConfig, path: Path) -> Path:
     """A third-person view beside the agent's camera (vision tasks), random actions."""
-    task, body, render = _plain(cfg.task), _plain(cfg.body), _plain(cfg.render)
+    task, body, render = env_dicts(cfg)
     env = FastEnv.build({**task, "layout_pool": 1}, body, render, seed=cfg.seed, render=False)
     env.reset()
     names = {env.model.cam(i).name for i in range(env.model.ncam)}
