@@ -22,7 +22,10 @@ def _run(cfg: DictConfig) -> None:
     except ConfigError as error:
         print(f"hvc-run: error: {error}", file=sys.stderr)
         sys.exit(2)
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    run_dir = Path(cfg.resume) if cfg.get("resume") else Path(HydraConfig.get().runtime.output_dir)
+    if cfg.get("resume") and not run_dir.is_dir():
+        print(f"hvc-run: error: resume={cfg.resume} is not a run directory", file=sys.stderr)
+        sys.exit(2)
     # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     log.info("stage=%s run dir %s", cfg.stage, run_dir)
@@ -30,6 +33,10 @@ def _run(cfg: DictConfig) -> None:
         from hvc.runtime.rollout import run_rollout
 
         summary = run_rollout(cfg, run_dir)
+    elif cfg.stage == "lowlevel":
+        from hvc.runtime.lowlevel_stage import run_lowlevel
+
+        summary = run_lowlevel(cfg, run_dir)
     else:  # validate() admits only known stages
         from hvc.runtime.mocap_stages import STAGES
 

@@ -12,9 +12,9 @@ from typing import Iterable, Sequence
 from omegaconf import DictConfig, OmegaConf
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
-GROUPS = ("body", "task", "controller", "algorithm", "clips", "reward", "render")
-STAGES = ("rollout", "info", "convert", "playback", "openloop")
-MOCAP_STAGES = ("info", "convert", "playback", "openloop")
+GROUPS = ("body", "task", "controller", "algorithm", "clips", "reward", "render", "lowlevel")
+STAGES = ("rollout", "info", "convert", "playback", "openloop", "lowlevel")
+MOCAP_STAGES = ("info", "convert", "playback", "openloop", "lowlevel")
 # Top-level keys that must be positive integers.
 POSITIVE_INTS = ("fragment_len", "total_steps", "num_envs", "log_every", "video_steps")
 # Task kinds with an environment on the fast path (tracking arrives with the mocap issue).

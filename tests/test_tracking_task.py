@@ -42,7 +42,7 @@ def test_reference_state_tracks_itself_perfectly(run_env):
 
 
 def test_open_loop_tracks_early_then_falls(run_env):
-    from hvc.lowlevel.openloop import open_loop_episode
+    from hvc.lowlevel.evaluation import open_loop_action, run_episode
 
     logic = run_env.layout.logic
     first_rewards, random_rewards, falls, completions = [], [], 0, []
@@ -54,7 +54,7 @@ def test_open_loop_tracks_early_then_falls(run_env):
         first_rewards.append(reward)
         run_env.reset()
         random_rewards.append(run_env.step(rng.uniform(-1, 1, run_env.action_size))[1])
-        stats = open_loop_episode(run_env)
+        stats = run_episode(run_env, open_loop_action)
         falls += stats.fell
         completions.append(stats.completion)
     # right after a reference start, playing the next pose tracks well (about 0.55: joint

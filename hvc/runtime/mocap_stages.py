@@ -74,7 +74,7 @@ def run_playback(cfg: DictConfig, run_dir: Path) -> dict:
 def run_openloop(cfg: DictConfig, run_dir: Path) -> dict:
     """The open-loop baseline on each clip of the set (or on `clip=` alone)."""
     from hvc.envs.fast_env import FastEnv
-    from hvc.lowlevel.openloop import evaluate_open_loop
+    from hvc.lowlevel.evaluation import evaluate_open_loop
 
     mocap_file = mocap_file_of(cfg)
     entries = [select_entry(cfg.clips, cfg.clip)] if cfg.clip else resolve(entries_of(cfg.clips), str(mocap_file))

@@ -1,0 +1,1 @@
+"""Networks: MLP policies and critics (low level), encoders and the LSTM core (high level)."""

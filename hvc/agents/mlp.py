@@ -1,0 +1,94 @@
+"""MLP policy and critic for the low-level experts, with a float32 numpy twin for actors.
+
+The policy is a Gaussian with a tanh-bounded mean and a FIXED standard deviation (the
+paper: learning the variance converged prematurely). Actors run the numpy twin: one
+expert step costs a few matrix-vector products, no torch dispatch.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+
+def mlp(sizes: Sequence[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2:
+            layers.append(nn.ELU())
+    return nn.Sequential(*layers)
+
+
+class Normalizer(nn.Module):
+    """Fixed observation normalisation (mean, std) stored with the weights."""
+
+    def __init__(self, size: int):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(size))
+        self.register_buffer("std", torch.ones(size))
+
+    def set(self, mean: np.ndarray, std: np.ndarray) -> None:
+        self.mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
+        self.std.copy_(torch.as_tensor(np.maximum(std, 1e-3), dtype=torch.float32))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.clamp((obs - self.mean) / self.std, -10.0, 10.0)
+
+
+class GaussianPolicy(nn.Module):
+    def __init__(self, obs_size: int, action_size: int, hidden: Sequence[int], sigma: float):
+        super().__init__()
+        self.normalizer = Normalizer(obs_size)
+        self.net = mlp([obs_size, *hidden, action_size])
+        self.sigma = float(sigma)
+
+    def mean(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self.net(self.normalizer(obs)))
+
+    def log_prob(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return gaussian_log_prob(action, self.mean(obs), self.sigma)
+
+
+def gaussian_log_prob(action: torch.Tensor, mean: torch.Tensor, sigma: float) -> torch.Tensor:
+    z = (action - mean) / sigma
+    return (-0.5 * z.pow(2) - np.log(sigma) - 0.5 * np.log(2 * np.pi)).sum(-1)
+
+
+class QNetwork(nn.Module):
+    def __init__(self, obs_size: int, action_size: int, hidden: Sequence[int]):
+        super().__init__()
+        self.normalizer = Normalizer(obs_size)
+        self.net = mlp([obs_size + action_size, *hidden, 1])
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([self.normalizer(obs), action], -1)).squeeze(-1)
+
+
+class NumpyPolicy:
+    """float32 numpy inference of a GaussianPolicy's mean: tanh(MLP((obs - m) / s))."""
+
+    def __init__(self, weights: list[np.ndarray], biases: list[np.ndarray], obs_mean: np.ndarray,
+                 obs_std: np.ndarray):
+        self.weights = [np.ascontiguousarray(w, np.float32) for w in weights]
+        self.biases = [np.ascontiguousarray(b, np.float32) for b in biases]
+        self.inv_std = (1.0 / np.maximum(obs_std, 1e-3)).astype(np.float32)
+        self.mean_obs = obs_mean.astype(np.float32)
+
+    @classmethod
+    def from_torch(cls, policy: GaussianPolicy) -> "NumpyPolicy":
+        linears = [m for m in policy.net if isinstance(m, nn.Linear)]
+        return cls([m.weight.detach().numpy().T.copy() for m in linears],
+                   [m.bias.detach().numpy().copy() for m in linears],
+                   policy.normalizer.mean.numpy().copy(), policy.normalizer.std.numpy().copy())
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        h = np.clip((obs.astype(np.float32) - self.mean_obs) * self.inv_std, -10.0, 10.0)
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            h = h @ w + b
+            if i < last:
+                h = np.where(h > 0, h, np.expm1(np.minimum(h, 0)))  # ELU
+        return np.tanh(h)

@@ -1,0 +1,192 @@
+"""Training one time-indexed tracking expert pi(a | s, t) for one clip (Sec. 2.1).
+
+1. Supervised pre-training on the reference: max log pi(q*_{t+1} | s*_t, t), i.e. with the
+   fixed sigma a regression of the action on the next reference pose, from the states
+   of the reference itself (poor control alone, but it shortens RL considerably).
+2. Off-policy RL on the tracking reward: the actor (numpy copy of the policy, fixed
+   noise sigma = 0.1) writes unrolls to a replay buffer from random starts along the
+   clip; the learner does SVG(0) + Retrace updates (hvc.algorithms.svg0_retrace).
+
+Everything needed to continue lives in `checkpoint.pt` (weights, optimisers, replay,
+counters, RNG states; loadable with torch.load(weights_only=True)), written atomically
+every `checkpoint_seconds` and at the end; a run restarted on the same directory
+resumes. A non-finite loss stops the run with a clear message, keeping the last
+good checkpoint.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import mujoco
+import numpy as np
+import torch
+
+from hvc.agents.mlp import GaussianPolicy, NumpyPolicy, QNetwork
+from hvc.algorithms.svg0_retrace import SVG0Retrace
+from hvc.envs.fast_env import FastEnv
+from hvc.lowlevel.evaluation import evaluate, policy_observation
+from hvc.runtime.metrics import MetricsLogger
+from hvc.runtime.replay import UnrollReplay
+
+
+class NonFiniteLoss(RuntimeError):
+    pass
+
+
+def reference_dataset(env: FastEnv) -> tuple[np.ndarray, np.ndarray]:
+    """(observations of the reference states s*_t, actions reaching q*_{t+1}), t < T-1."""
+    logic = env.layout.logic
+    ref = logic.reference
+    obs, actions = [], []
+    for t in range(ref.num_steps - 1):
+        logic.set_reference_state(env.data, t)
+        mujoco.mj_forward(env.model, env.data)
+        logic.t = t
+        obs.append(policy_observation(env.observation()))
+        actions.append(np.clip(logic.pose_to_actuation(ref.joints[t + 1]), -1, 1))
+    return np.asarray(obs, np.float32), np.asarray(actions, np.float32)
+
+
+def pretrain(policy: GaussianPolicy, obs: np.ndarray, actions: np.ndarray, steps: int, lr: float,
+             batch: int, rng: np.random.Generator) -> tuple[float, float]:
+    """Behaviour cloning of the next reference pose; returns the action MSE before and after."""
+    opt = torch.optim.Adam(policy.net.parameters(), lr=lr)
+    x, y = torch.from_numpy(obs), torch.from_numpy(actions)
+
+    def mse() -> float:
+        with torch.no_grad():
+            return float(((policy.mean(x) - y) ** 2).mean())
+
+    before = mse()
+    for _ in range(steps):
+        idx = torch.from_numpy(rng.integers(0, len(x), batch))
+        loss = ((policy.mean(x[idx]) - y[idx]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return before, mse()
+
+
+def _atomic_save(obj: Any, path: Path) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _rng_state(rng: np.random.Generator) -> str:
+    return json.dumps(rng.bit_generator.state)
+
+
+def _set_rng_state(rng: np.random.Generator, state: str) -> None:
+    rng.bit_generator.state = json.loads(state)
+
+
+def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, out_dir: Path,
+                 total_steps: int, seed: int = 0) -> dict[str, float]:
+    torch.set_num_threads(1)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    torch.manual_seed(seed)
+    env = FastEnv.build(task, body, render, seed=seed, render=False)
+    logic = env.layout.logic
+    obs_size = env.layout.proprio.size + logic.observation_size
+    sigma = float(cfg["sigma"])
+    policy = GaussianPolicy(obs_size, env.action_size, cfg["hidden"], sigma)
+    critic = QNetwork(obs_size, env.action_size, cfg["critic_hidden"])
+    learner = SVG0Retrace(policy, critic, cfg)
+    replay = UnrollReplay(int(cfg["replay_unrolls"]), int(cfg["unroll"]), obs_size, env.action_size)
+    checkpoint = out_dir / "checkpoint.pt"
+    counters = {"env_steps": 0, "episodes": 0}
+    metrics = MetricsLogger(out_dir / "metrics.csv")
+    if checkpoint.exists():
+        state = torch.load(checkpoint, weights_only=True)
+        learner.load_state_dict(state["learner"])
+        replay.load_state_dict(state["replay"])
+        counters = {k: int(v) for k, v in state["counters"].items()}
+        _set_rng_state(rng, state["rng"])
+        _set_rng_state(env.rng, state["env_rng"])
+        torch.set_rng_state(state["torch_rng"])
+    else:
+        ref_obs, ref_actions = reference_dataset(env)
+        mean, std = ref_obs.mean(0), ref_obs.std(0)
+        policy.normalizer.set(mean, std)
+        critic.normalizer.set(mean, std)
+        before, after = pretrain(policy, ref_obs, ref_actions, int(cfg["bc_steps"]), float(cfg["bc_lr"]),
+                                 int(cfg["bc_batch"]), rng)
+        learner.sync_targets()
+        metrics.log(0, {"bc_mse_before": before, "bc_mse_after": after})
+        metrics.log(0, evaluate(env, _greedy(NumpyPolicy.from_torch(policy)), int(cfg["eval_episodes"]), "eval_"))
+
+    def save() -> None:
+        _atomic_save({"learner": learner.state_dict(), "replay": replay.state_dict(), "counters": counters,
+                      "rng": _rng_state(rng), "env_rng": _rng_state(env.rng),
+                      "torch_rng": torch.get_rng_state()}, checkpoint)
+
+    actor = NumpyPolicy.from_torch(policy)
+    unroll, batch_size = int(cfg["unroll"]), int(cfg["batch_size"])
+    log_every, last_log = int(cfg["log_every"]), counters["env_steps"]
+    last_save, start, start_steps = time.monotonic(), time.perf_counter(), counters["env_steps"]
+    returns, completions, step_rewards, losses = [], [], [], []
+    obs = env.reset()
+    while counters["env_steps"] < total_steps:
+        seq_obs, seq_act, seq_rew, seq_disc, seq_logmu = [policy_observation(obs)], [], [], [], []
+        done = False
+        for _ in range(unroll):
+            mean = actor(seq_obs[-1])
+            noise = rng.standard_normal(mean.shape).astype(np.float32)
+            action = mean + sigma * noise
+            obs, reward, discount, done = env.step(action)
+            seq_obs.append(policy_observation(obs))
+            seq_act.append(action)
+            seq_rew.append(reward)
+            seq_disc.append(discount)
+            seq_logmu.append(-0.5 * float(noise @ noise) - action.size * (np.log(sigma) + 0.5 * np.log(2 * np.pi)))
+            step_rewards.append(reward)
+            counters["env_steps"] += 1
+            if done:
+                returns.append(env.episode_return)
+                completions.append(logic.completion)
+                counters["episodes"] += 1
+                break
+        replay.add(np.asarray(seq_obs), np.asarray(seq_act), seq_rew, seq_disc, seq_logmu)
+        if done:
+            obs = env.reset()
+        if replay.size >= int(cfg["min_replay_unrolls"]):
+            for _ in range(int(cfg["updates_per_unroll"])):
+                info = learner.update(replay.sample(batch_size, rng))
+                if not all(np.isfinite(v) for v in info.values()):
+                    raise NonFiniteLoss(f"non-finite loss {info} at env step {counters['env_steps']} in {out_dir}; "
+                                        f"the last good checkpoint is {checkpoint}")
+                losses.append(info)
+            if learner.steps % int(cfg["publish_every"]) == 0:
+                actor = NumpyPolicy.from_torch(policy)
+        if counters["env_steps"] - last_log >= log_every:
+            last_log = counters["env_steps"]
+            row = {"steps_per_second": (counters["env_steps"] - start_steps) / (time.perf_counter() - start),
+                   "step_reward": float(np.mean(step_rewards)) if step_rewards else 0.0,
+                   "learner_steps": learner.steps}
+            if returns:
+                row.update(episode_return=float(np.mean(returns)), completion=float(np.mean(completions)))
+            if losses:
+                row.update({k: float(np.mean([l[k] for l in losses])) for k in losses[0]})
+            metrics.log(counters["env_steps"], row, learner_steps=learner.steps * batch_size * unroll)
+            (out_dir / "progress.json").write_text(json.dumps({"env_steps": counters["env_steps"],
+                                                               "total_steps": total_steps, **row}))
+            returns, completions, step_rewards, losses = [], [], [], []
+        if time.monotonic() - last_save > float(cfg["checkpoint_seconds"]):
+            save()
+            last_save = time.monotonic()
+    save()
+    final = evaluate(env, _greedy(NumpyPolicy.from_torch(policy)), int(cfg["eval_episodes"]), "eval_")
+    metrics.log(counters["env_steps"], final, learner_steps=learner.steps * batch_size * unroll)
+    metrics.close()
+    env.close()
+    return final
+
+
+def _greedy(actor: NumpyPolicy):
+    return lambda obs, logic: actor(policy_observation(obs))

@@ -1,0 +1,96 @@
+"""`hvc-run stage=lowlevel`: train one expert per clip of a set, in parallel processes.
+
+Each clip trains in its own process and run directory (`experts/<i>_<behaviour>_<id>/`:
+metrics.csv, checkpoint.pt, progress.json); the parent shows one progress bar per clip
+and, when all are done, assembles the expert library. `resume=<run dir>` continues a
+killed run in place: finished clips are kept, the others restart from their checkpoints.
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import time
+import traceback
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from hvc.mocap.clip_sets import entries_of, resolve
+from hvc.mocap.source import find_mocap_file
+from hvc.runtime.env_config import env_dicts
+
+
+def expert_dir(run_dir: Path, index: int, entry) -> Path:
+    return run_dir / "experts" / f"{index}_{entry.behaviour}_{entry.id}"
+
+
+def _train_worker(task, body, render, cfg_ll, out_dir: str, total_steps: int, seed: int) -> None:
+    from hvc.lowlevel.train import train_expert
+
+    out = Path(out_dir)
+    try:
+        result = train_expert(task, body, render, cfg_ll, out, total_steps, seed)
+        (out / "result.json").write_text(json.dumps(result, indent=2))
+    except Exception:  # noqa: BLE001 - recorded for the parent, which names the clip
+        (out / "error.txt").write_text(traceback.format_exc())
+        raise
+
+
+def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
+    mocap_file = find_mocap_file(cfg.mocap_file, str(cfg.body.get("model_version", "2019")))
+    entries = resolve(entries_of(cfg.clips), str(mocap_file))
+    cfg_ll = OmegaConf.to_container(cfg.lowlevel, resolve=True)
+    jobs = []
+    for i, entry in enumerate(entries):
+        out = expert_dir(run_dir, i, entry)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "error.txt").unlink(missing_ok=True)
+        if (out / "result.json").exists():
+            continue  # finished in an earlier attempt of this run
+        task, body, render = env_dicts(cfg, entry, tracking=True)
+        jobs.append((entry, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed) + i)))
+    ctx = mp.get_context("spawn")
+    limit = int(cfg.lowlevel.workers) or len(jobs) or 1
+    running: list[tuple] = []
+    bars = {str(out): tqdm(total=int(cfg.total_steps), desc=f"{entry.behaviour} {entry.id}", unit="step",
+                           position=k, disable=None, mininterval=2.0) for k, (entry, out, _) in enumerate(jobs)}
+    pending = list(jobs)
+    failed = []
+    try:
+        while pending or running:
+            while pending and len(running) < limit:
+                entry, out, args = pending.pop(0)
+                proc = ctx.Process(target=_train_worker, args=args, name=f"hvc-expert-{entry.id}")
+                proc.start()
+                running.append((entry, out, proc))
+            time.sleep(2.0)
+            for entry, out, proc in list(running):
+                progress = out / "progress.json"
+                if progress.exists():
+                    try:
+                        steps = json.loads(progress.read_text())["env_steps"]
+                        bar = bars[str(out)]
+                        bar.update(max(0, steps - bar.n))
+                    except (ValueError, KeyError):
+                        pass
+                if not proc.is_alive():
+                    running.remove((entry, out, proc))
+                    if proc.exitcode != 0:
+                        failed.append(f"clip {entry.id} ({entry.behaviour}) failed, exit code {proc.exitcode}; "
+                                      f"see {out / 'error.txt'}")
+    finally:
+        for _, _, proc in running:  # Ctrl-C: stop the workers; their checkpoints stay
+            proc.terminate()
+            proc.join(timeout=10)
+        for bar in bars.values():
+            bar.close()
+    if failed:
+        raise RuntimeError("; ".join(failed))
+    results = {}
+    for i, entry in enumerate(entries):
+        result = json.loads((expert_dir(run_dir, i, entry) / "result.json").read_text())
+        results[entry.id] = result
+        print(f"expert clip={entry.id} behaviour={entry.behaviour} completion={result['eval_completion']:.2f} "
+              f"reward={result['eval_reward']:.2f}")
+    return {"experts": results, "run_dir": str(run_dir)}
