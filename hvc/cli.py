@@ -37,6 +37,10 @@ def _run(cfg: DictConfig) -> None:
         from hvc.runtime.lowlevel_stage import run_lowlevel
 
         summary = run_lowlevel(cfg, run_dir)
+    elif cfg.stage == "evaluate":
+        from hvc.runtime.evaluate_stage import run_evaluate
+
+        summary = run_evaluate(cfg, run_dir)
     else:  # validate() admits only known stages
         from hvc.runtime.mocap_stages import STAGES
 

@@ -69,6 +69,8 @@ class TrackingLogic(TaskLogic):
         self.actuator_order = np.asarray(walker.actuator_order)
         self.act_offset, self.act_scale = np.asarray(walker._offset), np.asarray(walker._scale)
         self.has_act = model.na > 0  # V2020 actuators filter their input
+        if reference is None:
+            reference = cfg.get("reference")  # e.g. from an expert library: no mocap file needed
         self.reference = reference if reference is not None else build_reference(
             cfg["clip"], cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)), int(cfg.get("cycle_blend", 4)))
         self.reward_fn = TrackingReward(cfg["reward"])

@@ -51,6 +51,24 @@ def reference_dataset(env: FastEnv) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(obs, np.float32), np.asarray(actions, np.float32)
 
 
+def perturbed_dataset(env: FastEnv, episodes: int, sigma: float,
+                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """States visited by playing the reference's next pose with the policy's noise from
+    random starts, each labelled with the reference's next pose at its time index: the
+    pre-trained policy then sees the states it will meet, not only the reference's."""
+    logic = env.layout.logic
+    ref = logic.reference
+    obs_list, actions = [], []
+    for _ in range(episodes):
+        obs, done = env.reset(), False
+        while not done:
+            target = np.clip(logic.pose_to_actuation(ref.joints[min(logic.t + 1, ref.num_steps - 1)]), -1, 1)
+            obs_list.append(policy_observation(obs))
+            actions.append(target)
+            obs, _, _, done = env.step(target + sigma * rng.standard_normal(target.shape))
+    return np.asarray(obs_list, np.float32), np.asarray(actions, np.float32)
+
+
 def pretrain(policy: GaussianPolicy, obs: np.ndarray, actions: np.ndarray, steps: int, lr: float,
              batch: int, rng: np.random.Generator) -> tuple[float, float]:
     """Behaviour cloning of the next reference pose; returns the action MSE before and after."""
@@ -112,6 +130,8 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         torch.set_rng_state(state["torch_rng"])
     else:
         ref_obs, ref_actions = reference_dataset(env)
+        near_obs, near_actions = perturbed_dataset(env, int(cfg["bc_rollouts"]), sigma, rng)
+        ref_obs, ref_actions = np.concatenate([ref_obs, near_obs]), np.concatenate([ref_actions, near_actions])
         mean, std = ref_obs.mean(0), ref_obs.std(0)
         policy.normalizer.set(mean, std)
         critic.normalizer.set(mean, std)

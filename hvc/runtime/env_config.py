@@ -17,9 +17,11 @@ def _plain(node) -> Any:
     return OmegaConf.to_container(node, resolve=True)
 
 
-def env_dicts(cfg: DictConfig, entry=None, tracking: bool = False) -> tuple[dict, dict, dict]:
+def env_dicts(cfg: DictConfig, entry=None, tracking: bool = False,
+              with_mocap: bool = True) -> tuple[dict, dict, dict]:
     """`tracking=True` builds the tracking task whatever `task` says (playback, openloop);
-    `entry` overrides the clip chosen by `clip=`."""
+    `entry` overrides the clip chosen by `clip=`; `with_mocap=False` leaves the mocap file
+    out (the caller supplies the reference, e.g. from an expert library)."""
     body, render = _plain(cfg.body), _plain(cfg.render)
     if cfg.task.kind == "tracking":
         task = _plain(cfg.task)
@@ -31,6 +33,7 @@ def env_dicts(cfg: DictConfig, entry=None, tracking: bool = False) -> tuple[dict
     from hvc.mocap.source import find_mocap_file
 
     entry = entry if entry is not None else select_entry(cfg.clips, cfg.clip)
-    task.update(clip=entry.as_dict(),
-                mocap_file=str(find_mocap_file(cfg.mocap_file, str(body.get("model_version", "2019")))))
+    task["clip"] = entry.as_dict()
+    if with_mocap:
+        task["mocap_file"] = str(find_mocap_file(cfg.mocap_file, str(body.get("model_version", "2019"))))
     return task, body, render

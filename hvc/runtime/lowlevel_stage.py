@@ -16,6 +16,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from hvc.config import group_config
 from hvc.mocap.clip_sets import entries_of, resolve
 from hvc.mocap.source import find_mocap_file
 from hvc.runtime.env_config import env_dicts
@@ -87,10 +88,39 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
             bar.close()
     if failed:
         raise RuntimeError("; ".join(failed))
-    results = {}
+    library = assemble_library(cfg, run_dir, entries, mocap_file)
+    path = library.save(run_dir / f"experts_{cfg.clips.name}.npz")
+    for e in library.experts:
+        print(f"expert clip={e.entry['id']} behaviour={e.entry['behaviour']} "
+              f"completion={e.scores['eval_completion']:.2f} reward={e.scores['eval_reward']:.2f}")
+    print(f"library={path}")
+    return {"library": str(path), "experts": {e.entry["id"]: e.scores for e in library.experts}}
+
+
+def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path):
+    """The expert library from the clips' checkpoints and evaluation results."""
+    import torch
+
+    from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
+    from hvc.lowlevel.library import Expert, ExpertLibrary, provenance
+    from hvc.lowlevel.tracking import build_reference
+
+    experts, steps = [], []
     for i, entry in enumerate(entries):
-        result = json.loads((expert_dir(run_dir, i, entry) / "result.json").read_text())
-        results[entry.id] = result
-        print(f"expert clip={entry.id} behaviour={entry.behaviour} completion={result['eval_completion']:.2f} "
-              f"reward={result['eval_reward']:.2f}")
-    return {"experts": results, "run_dir": str(run_dir)}
+        out = expert_dir(run_dir, i, entry)
+        state = torch.load(out / "checkpoint.pt", weights_only=True)
+        weights = state["learner"]["policy"]
+        obs_size = weights["normalizer.mean"].shape[0]
+        action_size = [v for k, v in weights.items() if k.endswith("bias")][-1].shape[0]
+        policy = GaussianPolicy(obs_size, action_size, cfg.lowlevel.hidden, cfg.lowlevel.sigma)
+        policy.load_state_dict(weights)
+        tracking = cfg.task if cfg.task.kind == "tracking" else group_config("task", "tracking")
+        reference = build_reference(entry.as_dict(), str(mocap_file), int(tracking.cycle_repeats),
+                                    int(tracking.cycle_blend))
+        scores = json.loads((out / "result.json").read_text())
+        steps.append(int(state["counters"]["env_steps"]))
+        experts.append(Expert(entry.as_dict(), NumpyPolicy.from_torch(policy), reference, scores))
+    meta = {"clip_set": str(cfg.clips.name), "body": str(cfg.body.name), "sigma": float(cfg.lowlevel.sigma),
+            "hidden": list(cfg.lowlevel.hidden), "control_timestep": float(cfg.task.control_timestep),
+            "provenance": provenance(steps, {"mocap_file": str(mocap_file)})}
+    return ExpertLibrary(experts, meta)

@@ -1,0 +1,115 @@
+"""The expert library: all experts of a clip set in one file, loadable without pickle.
+
+An `.npz` (numpy, `allow_pickle=False`) holding, per expert, the policy's weights and
+observation normalisation, and the reference it tracks (pose, velocities, end effectors,
+time input per step: the bank of start poses for the tasks' initialisation and the
+material of the query controller's fragment keys); plus JSON metadata: format version,
+clip entries, evaluation scores and provenance (command, steps, code version).
+A file from an incompatible format version fails to load with a clear message.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+import hvc
+from hvc.agents.mlp import NumpyPolicy
+from hvc.mocap.reference import Reference
+
+LIBRARY_VERSION = 1
+REFERENCE_FIELDS = ("joints", "joints_velocity", "position", "quaternion", "velocity", "angular_velocity",
+                    "end_effectors", "phase")
+SHIPPED_DIR = Path(__file__).resolve().parents[1] / "data"
+
+
+class LibraryVersionError(RuntimeError):
+    pass
+
+
+@dataclass
+class Expert:
+    entry: dict[str, Any]
+    policy: NumpyPolicy
+    reference: Reference
+    scores: dict[str, float] = field(default_factory=dict)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return self.policy(obs)
+
+
+@dataclass
+class ExpertLibrary:
+    experts: list[Expert]
+    meta: dict[str, Any]
+
+    def __len__(self) -> int:
+        return len(self.experts)
+
+    @property
+    def clip_ids(self) -> list[str]:
+        return [e.entry["id"] for e in self.experts]
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        arrays: dict[str, np.ndarray] = {}
+        for i, e in enumerate(self.experts):
+            for j, (w, b) in enumerate(zip(e.policy.weights, e.policy.biases)):
+                arrays[f"e{i}/w{j}"], arrays[f"e{i}/b{j}"] = w, b
+            arrays[f"e{i}/obs_mean"] = e.policy.mean_obs
+            arrays[f"e{i}/obs_std"] = 1.0 / e.policy.inv_std
+            for name in REFERENCE_FIELDS:
+                arrays[f"e{i}/ref/{name}"] = np.asarray(getattr(e.reference, name), np.float32)
+        meta = {**self.meta, "version": LIBRARY_VERSION,
+                "experts": [{"entry": e.entry, "scores": e.scores, "layers": len(e.policy.weights),
+                             "dt": e.reference.dt, "cyclic": e.reference.cyclic} for e in self.experts]}
+        arrays["meta"] = np.array(json.dumps(meta))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "ExpertLibrary":
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(str(data["meta"]))
+            version = meta.get("version")
+            if version != LIBRARY_VERSION:
+                raise LibraryVersionError(f"expert library {path} has format version {version}; this hvc "
+                                          f"({hvc.__version__}) reads version {LIBRARY_VERSION}: retrain with "
+                                          f"`hvc-run stage=lowlevel` or use a matching hvc")
+            experts = []
+            for i, info in enumerate(meta["experts"]):
+                policy = NumpyPolicy([data[f"e{i}/w{j}"] for j in range(info["layers"])],
+                                     [data[f"e{i}/b{j}"] for j in range(info["layers"])],
+                                     data[f"e{i}/obs_mean"], data[f"e{i}/obs_std"])
+                ref = Reference(clip_id=info["entry"]["id"], dt=float(info["dt"]), cyclic=bool(info["cyclic"]),
+                                **{name: data[f"e{i}/ref/{name}"].astype(np.float64) for name in REFERENCE_FIELDS})
+                experts.append(Expert(info["entry"], policy, ref, info.get("scores", {})))
+        return cls(experts, {k: v for k, v in meta.items() if k != "experts"})
+
+
+def code_version() -> str:
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    return f"hvc {hvc.__version__}" + (f" ({commit})" if commit else "")
+
+
+def provenance(steps: Sequence[int], extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    return {"command": " ".join(["hvc-run", *sys.argv[1:]]), "env_steps": list(steps),
+            "code_version": code_version(), **(extra or {})}
+
+
+def shipped_library(clip_set: str = "go_to_target") -> Path:
+    path = SHIPPED_DIR / f"experts_{clip_set}.npz"
+    if not path.exists():
+        raise FileNotFoundError(f"no shipped expert library for clips={clip_set} at {path}; "
+                                f"train one with `hvc-run stage=lowlevel clips={clip_set}` and pass library=<file>")
+    return path
