@@ -1,0 +1,143 @@
+"""Low-level experts: pre-training, the SVG(0) + Retrace losses, the library format."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from hvc.agents.mlp import GaussianPolicy, NumpyPolicy, QNetwork, gaussian_log_prob
+from hvc.algorithms.svg0_retrace import Batch, SVG0Retrace
+from hvc.lowlevel.library import ExpertLibrary, Expert, LibraryVersionError
+from hvc.lowlevel.train import pretrain
+from hvc.mocap.reference import Reference
+
+CFG = dict(gamma=0.9, retrace_lambda=1.0, kl_cost=0.5, target_update_period=3, value_samples=2, policy_lr=1e-3,
+           critic_lr=1e-3)
+
+
+def _batch(T=5, B=4, obs=6, act=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.ones(T, B)
+    mask[3:, 0] = 0  # an unroll that ended early
+    return Batch(obs=torch.randn(T + 1, B, obs, generator=g), actions=torch.rand(T, B, act, generator=g) * 2 - 1,
+                 rewards=torch.rand(T, B, generator=g), discounts=(torch.rand(T, B, generator=g) > 0.2).float(),
+                 log_mu=torch.randn(T, B, generator=g), mask=mask)
+
+
+def _learner(seed=0):
+    torch.manual_seed(seed)
+    return SVG0Retrace(GaussianPolicy(6, 3, [16], 0.1), QNetwork(6, 3, [16]), CFG)
+
+
+def test_critic_loss_matches_an_independent_retrace_computation():
+    learner, b = _learner(), _batch()
+    torch.manual_seed(123)
+    targets = learner.critic_targets(b)
+    # independent: plain python loops over the recursion, same value-sample noise
+    torch.manual_seed(123)
+    pol, crit = learner.target_policy, learner.target_critic
+    with torch.no_grad():
+        next_mean = pol.mean(b.obs[1:])
+        v = torch.stack([crit(b.obs[1:], next_mean + 0.1 * torch.randn_like(next_mean)) for _ in range(2)]).mean(0)
+        q = crit(b.obs[:-1], b.actions)
+        c = torch.clamp(torch.exp(gaussian_log_prob(b.actions, pol.mean(b.obs[:-1]), 0.1) - b.log_mu), max=1) * b.mask
+    T, B = b.rewards.shape
+    expected = np.zeros((T, B))
+    for j in range(B):
+        for t in range(T):
+            total, w = float(q[t, j]), 1.0
+            for k in range(t, T):
+                if k > t:
+                    w *= 0.9 * float(b.discounts[k - 1, j]) * float(c[k, j])
+                total += w * (float(b.rewards[k, j]) + 0.9 * float(b.discounts[k, j]) * float(v[k, j]) - float(q[k, j]))
+            expected[t, j] = total
+    np.testing.assert_allclose(targets.numpy(), expected, atol=1e-5)
+
+
+def test_policy_loss_is_svg0_with_a_kl_to_the_target_policy():
+    learner, b = _learner(), _batch()
+    with torch.no_grad():  # move the policy away from its target so the KL term is non-zero
+        for p in learner.policy.parameters():
+            p.add_(0.05)
+    obs = b.obs[:-1]
+    torch.manual_seed(7)
+    learner.critic_targets(b)  # consumes the same random numbers as update() does first
+    with torch.no_grad():
+        mean = learner.policy.mean(obs)
+        action = mean + 0.1 * torch.randn_like(mean)
+        q_pi = learner.target_critic(obs, action)
+        kl = ((mean - learner.target_policy.mean(obs)) ** 2).sum(-1) / (2 * 0.01)
+        w = b.mask / b.mask.sum()
+        expected = float(((-q_pi + 0.5 * kl) * w).sum())
+    torch.manual_seed(7)
+    info = learner.update(b)
+    assert info["policy_loss"] == pytest.approx(expected, rel=1e-5)
+    assert info["kl"] > 0
+
+
+def test_targets_refresh_every_period_and_learning_reduces_critic_loss():
+    learner, b = _learner(), _batch()
+    learner.target_update_period = 10**9  # fixed targets: the critic regresses onto them
+    first = learner.update(b)["critic_loss"]
+    for _ in range(300):
+        last = learner.update(b)["critic_loss"]
+    assert last < 0.5 * first
+    learner.target_update_period = 3
+    learner.steps = 2
+    learner.update(b)  # step 3: a multiple of target_update_period
+    for p, t in zip(learner.critic.parameters(), learner.target_critic.parameters()):
+        torch.testing.assert_close(p, t)
+
+
+def test_pretraining_reduces_the_action_error():
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(200, 6)).astype(np.float32)
+    actions = np.tanh(obs[:, :3] * 0.5).astype(np.float32)
+    torch.manual_seed(0)
+    policy = GaussianPolicy(6, 3, [32, 32], 0.1)
+    before, after = pretrain(policy, obs, actions, steps=300, lr=3e-3, batch=64, rng=rng)
+    assert after < 0.2 * before
+
+
+def test_numpy_actor_equals_torch_policy():
+    torch.manual_seed(0)
+    policy = GaussianPolicy(6, 3, [16, 16], 0.1)
+    policy.normalizer.set(np.arange(6.0), np.full(6, 2.0))
+    x = np.random.default_rng(1).normal(size=6).astype(np.float32)
+    np.testing.assert_allclose(NumpyPolicy.from_torch(policy)(x), policy.mean(torch.from_numpy(x)).detach().numpy(),
+                               atol=1e-6)
+
+
+def _library():
+    torch.manual_seed(0)
+    n = 5
+    ref = Reference("CMU_000_01", 0.03, False, *(np.random.default_rng(i).normal(size=s) for i, s in enumerate(
+        [(n, 56), (n, 56), (n, 3), (n, 4), (n, 3), (n, 3), (n, 4, 3)])), np.linspace(0, 1, n))
+    policy = NumpyPolicy.from_torch(GaussianPolicy(8, 56, [16], 0.1))
+    return ExpertLibrary([Expert({"id": "CMU_000_01", "behaviour": "stand"}, policy, ref, {"eval_reward": 0.5})],
+                         {"clip_set": "test"})
+
+
+def test_library_round_trip_without_pickle(tmp_path):
+    lib = _library()
+    path = lib.save(tmp_path / "lib.npz")
+    loaded = ExpertLibrary.load(path)
+    x = np.random.default_rng(0).normal(size=8).astype(np.float32)
+    np.testing.assert_allclose(loaded.experts[0].act(x), lib.experts[0].act(x), atol=1e-6)
+    np.testing.assert_allclose(loaded.experts[0].reference.end_effectors, lib.experts[0].reference.end_effectors,
+                               atol=1e-6)
+    assert loaded.clip_ids == ["CMU_000_01"] and loaded.experts[0].scores == {"eval_reward": 0.5}
+    with np.load(path, allow_pickle=False) as data:  # plain arrays: no pickle needed anywhere
+        assert json.loads(str(data["meta"]))["version"] == 1
+
+
+def test_library_from_another_version_fails_clearly(tmp_path):
+    path = _library().save(tmp_path / "lib.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    meta = json.loads(str(arrays["meta"]))
+    meta["version"] = 99
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "old.npz", **arrays)
+    with pytest.raises(LibraryVersionError, match="format version 99"):
+        ExpertLibrary.load(tmp_path / "old.npz")
