@@ -3,7 +3,8 @@
 Per task: the raw `mj_step` rate on the same compiled model (the ceiling, expressed in
 control steps/s), the hvc fast env's control steps/s with random actions including
 resets, dm_control composer's on the same task, and the mean reset time of each. Then
-64x64 camera frames/s on gaps with the default and the fast render settings.
+64x64 camera frames/s on gaps with the default and the fast render settings, and the
+time of one low-level expert's action (numpy float32, hidden 256) against its 30 us goal.
 Ratios, not absolute times, are the numbers to compare across machines.
 """
 from __future__ import annotations
@@ -13,6 +14,8 @@ import os
 import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # per-core numbers: one thread, before numpy loads BLAS
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
@@ -108,6 +111,27 @@ def render_fps(settings_name: str, seconds: float) -> float:
     return fps
 
 
+def expert_inference_us(hidden: int, seconds: float) -> float:
+    """One expert's action for one env step (numpy float32, one thread), microseconds."""
+    import torch
+
+    from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
+
+    torch.manual_seed(0)
+    cfg = compose(["task=tracking"])
+    obs_size = 136 + 1  # the humanoid's proprioception + the time input
+    actor = NumpyPolicy.from_torch(GaussianPolicy(obs_size, 56, [hidden, hidden], float(cfg.lowlevel.sigma)))
+    obs = np.random.default_rng(0).normal(size=obs_size).astype(np.float32)
+    for _ in range(200):
+        actor(obs)
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        for _ in range(100):
+            actor(obs)
+        n += 100
+    return 1e6 * (time.perf_counter() - t0) / n
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
@@ -132,6 +156,8 @@ def main(argv=None) -> None:
         lines.append(f"bench task={name} ceiling_sps={ceiling:.0f} hvc_sps={sps:.0f} composer_sps={comp:.0f} "
                      f"hvc/ceiling={sps / ceiling:.2f} composer/ceiling={comp / ceiling:.2f} "
                      f"reset_ms={reset_ms:.2f} composer_reset_ms={comp_reset:.1f}")
+    us = expert_inference_us(256, args.seconds)
+    lines.append(f"bench expert_inference hidden=256 us_per_step={us:.1f} goal_us=30 ratio={us / 30:.2f}")
     if not args.no_render:
         for settings in ("default", "fast"):
             lines.append(f"bench render task=gaps settings={settings} size=64x64 "

@@ -85,10 +85,43 @@ class NumpyPolicy:
                    policy.normalizer.mean.numpy().copy(), policy.normalizer.std.numpy().copy())
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        h = np.clip((obs.astype(np.float32) - self.mean_obs) * self.inv_std, -10.0, 10.0)
+        """One observation (1-D) or a batch (2-D). The 1-D path reuses preallocated
+        buffers: a step of the humanoid's expert is a few small matrix-vector products,
+        so allocation and call overhead matter as much as the arithmetic."""
+        if np.ndim(obs) != 1:
+            return self._batch(np.asarray(obs, np.float32))
+        buffers = self._buffers
+        x = buffers[0]
+        np.subtract(obs, self.mean_obs, out=x)
+        np.multiply(x, self.inv_std, out=x)
+        np.clip(x, -10.0, 10.0, out=x)
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            h = buffers[i + 1]
+            np.dot(x, w, out=h)
+            h += b
+            if i < last:  # ELU in place: max(h, 0) + expm1(min(h, 0))
+                neg = self._neg[i]
+                np.minimum(h, 0.0, out=neg)
+                np.expm1(neg, out=neg)
+                np.maximum(h, 0.0, out=h)
+                h += neg
+            x = h
+        return np.tanh(x)
+
+    @property
+    def _buffers(self) -> list[np.ndarray]:
+        if not hasattr(self, "_bufs"):
+            self._bufs = [np.empty(self.weights[0].shape[0], np.float32)] + [
+                np.empty(w.shape[1], np.float32) for w in self.weights]
+            self._neg = [np.empty(w.shape[1], np.float32) for w in self.weights]
+        return self._bufs
+
+    def _batch(self, obs: np.ndarray) -> np.ndarray:
+        h = np.clip((obs - self.mean_obs) * self.inv_std, -10.0, 10.0)
         last = len(self.weights) - 1
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             h = h @ w + b
             if i < last:
-                h = np.where(h > 0, h, np.expm1(np.minimum(h, 0)))  # ELU
+                h = np.maximum(h, 0.0) + np.expm1(np.minimum(h, 0.0))
         return np.tanh(h)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import os
 import time
 import traceback
 from pathlib import Path
@@ -51,6 +52,8 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
             continue  # finished in an earlier attempt of this run
         task, body, render = env_dicts(cfg, entry, tracking=True)
         jobs.append((entry, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed) + i)))
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")  # one BLAS thread per clip process (inherited at spawn)
     ctx = mp.get_context("spawn")
     limit = int(cfg.lowlevel.workers) or len(jobs) or 1
     running: list[tuple] = []
