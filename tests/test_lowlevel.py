@@ -141,3 +141,30 @@ def test_library_from_another_version_fails_clearly(tmp_path):
     np.savez(tmp_path / "old.npz", **arrays)
     with pytest.raises(LibraryVersionError, match="format version 99"):
         ExpertLibrary.load(tmp_path / "old.npz")
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+def test_expert_training_resumes_from_its_checkpoint(tmp_path):
+    import pandas as pd
+    from omegaconf import OmegaConf
+
+    from hvc.config import compose
+    from hvc.lowlevel.train import train_expert
+    from hvc.runtime.env_config import env_dicts
+
+    cfg = compose(["task=tracking", "clip=left_turn", "lowlevel.bc_steps=20", "lowlevel.bc_rollouts=2",
+                   "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=1", "lowlevel.log_every=100",
+                   "lowlevel.batch_size=4"])
+    task, body, render = env_dicts(cfg)
+    ll = OmegaConf.to_container(cfg.lowlevel)
+    train_expert(task, body, render, ll, tmp_path, total_steps=200)
+    first = torch.load(tmp_path / "checkpoint.pt", weights_only=True)  # no pickle needed
+    assert 200 <= first["counters"]["env_steps"] < 210 and first["learner"]["steps"] > 0
+    result = train_expert(task, body, render, ll, tmp_path, total_steps=400)
+    second = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    assert 400 <= second["counters"]["env_steps"] < 410
+    assert second["learner"]["steps"] > first["learner"]["steps"]
+    metrics = pd.read_csv(tmp_path / "metrics.csv")
+    assert (metrics.key == "bc_mse_after").sum() == 1          # pre-training ran once
+    assert metrics.env_steps.max() >= 400 and 0 <= result["eval_completion"] <= 1

@@ -104,7 +104,9 @@ def _set_rng_state(rng: np.random.Generator, state: str) -> None:
 
 
 def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, out_dir: Path,
-                 total_steps: int, seed: int = 0) -> dict[str, float]:
+                 total_steps: int, seed: int = 0, parent_pid: int | None = None) -> dict[str, float]:
+    """Trains (or resumes) one expert in `out_dir`; returns its final evaluation. With
+    `parent_pid`, stops after a checkpoint if that process dies (no orphaned workers)."""
     torch.set_num_threads(1)
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -200,6 +202,9 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         if time.monotonic() - last_save > float(cfg["checkpoint_seconds"]):
             save()
             last_save = time.monotonic()
+        if parent_pid is not None and counters["env_steps"] % 1000 < unroll and os.getppid() != parent_pid:
+            save()  # the launching process died (killed): keep our progress and stop
+            raise SystemExit(f"parent process {parent_pid} is gone; checkpoint saved in {checkpoint}")
     save()
     final = evaluate(env, _greedy(NumpyPolicy.from_torch(policy)), int(cfg["eval_episodes"]), "eval_")
     metrics.log(counters["env_steps"], final, learner_steps=learner.steps * batch_size * unroll)

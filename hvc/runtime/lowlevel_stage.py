@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
+import signal
 import time
 import traceback
 from pathlib import Path
@@ -27,16 +28,21 @@ def expert_dir(run_dir: Path, index: int, entry) -> Path:
     return run_dir / "experts" / f"{index}_{entry.behaviour}_{entry.id}"
 
 
-def _train_worker(task, body, render, cfg_ll, out_dir: str, total_steps: int, seed: int) -> None:
+def _train_worker(task, body, render, cfg_ll, out_dir: str, total_steps: int, seed: int, parent: int) -> None:
     from hvc.lowlevel.train import train_expert
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the parent, which stops us cleanly
     out = Path(out_dir)
     try:
-        result = train_expert(task, body, render, cfg_ll, out, total_steps, seed)
+        result = train_expert(task, body, render, cfg_ll, out, total_steps, seed, parent_pid=parent)
         (out / "result.json").write_text(json.dumps(result, indent=2))
     except Exception:  # noqa: BLE001 - recorded for the parent, which names the clip
         (out / "error.txt").write_text(traceback.format_exc())
         raise
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
@@ -51,7 +57,8 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         if (out / "result.json").exists():
             continue  # finished in an earlier attempt of this run
         task, body, render = env_dicts(cfg, entry, tracking=True)
-        jobs.append((entry, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed) + i)))
+        jobs.append((entry, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed) + i,
+                                   os.getpid())))
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")  # one BLAS thread per clip process (inherited at spawn)
     ctx = mp.get_context("spawn")
@@ -61,6 +68,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
                            position=k, disable=None, mininterval=2.0) for k, (entry, out, _) in enumerate(jobs)}
     pending = list(jobs)
     failed = []
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` stops workers too
     try:
         while pending or running:
             while pending and len(running) < limit:
@@ -89,6 +97,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
             proc.join(timeout=10)
         for bar in bars.values():
             bar.close()
+        signal.signal(signal.SIGTERM, previous)
     if failed:
         raise RuntimeError("; ".join(failed))
     library = assemble_library(cfg, run_dir, entries, mocap_file)
