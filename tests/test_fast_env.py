@@ -100,3 +100,31 @@ def test_rolling_ball_on_go_to_target():
     for _ in range(20):
         obs, reward, discount, done = env.step(env.random_action())
     assert np.isfinite(obs["proprio"]).all() and reward in (0.0, 1.0)
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+@pytest.mark.parametrize("task_name", ["walls", "forage"])
+def test_episodes_start_from_poses_of_the_clip_set(task_name):
+    from hvc.config import compose
+    from hvc.mocap.clips import root_heading
+    from hvc.runtime.env_config import env_dicts
+
+    task, body, render = env_dicts(compose([f"task={task_name}", "task.layout_pool=1"]))
+    assert task["init_clips"] and task["mocap_file"]
+    env = FastEnv.build(task, body, render, seed=0, render=False)
+    placement = env.layout.logic.placement
+    bank = placement.pose_bank
+    headings, matched = [], 0
+    for _ in range(8):
+        env.reset()
+        joints = env.data.qpos[placement.joint_qpos]
+        matched += bool(np.isclose(bank.joints, joints, atol=1e-9).all(axis=1).any())
+        headings.append(root_heading(env.data.qpos[3:7][None])[0])
+        assert 0.5 < env.data.qpos[2] < 1.3
+    env.close()
+    assert matched == 8  # every start is a mocap pose of the set
+    if task_name == "walls":
+        np.testing.assert_allclose(headings, 0.0, atol=1e-9)  # facing down the corridor
+    else:
+        assert np.ptp(headings) > 1.0  # the maze spawns with random headings

@@ -108,6 +108,12 @@ class FastEnv:
             env.reset()  # composer compiles a fresh layout
             layouts.append(layout_from_composer(env, task, body))
         env.close()
+        if task.get("init_clips"):
+            from hvc.mocap.pose_bank import PoseBank
+
+            bank = PoseBank.from_entries(task["init_clips"], task["mocap_file"])
+            for layout in layouts:
+                layout.logic.placement.pose_bank = bank
         return cls(layouts, task, body, render_settings, seed, render)
 
     @classmethod

@@ -25,13 +25,29 @@ class WalkerPlacement:
         physics.data.qpos[:], physics.data.qvel[:] = saved  # leave the caller's state alone
         physics.forward()
         free = mjcf.get_frame_freejoint(walker.mjcf_model)
+        self.pose_bank = None
         if free is not None:
             self.free_adr = int(physics.model.jnt_qposadr[physics.bind(free).element_id])
+            self.free_dof = int(physics.model.jnt_dofadr[physics.bind(free).element_id])
             self.slide_adr = None
+            if hasattr(walker, "mocap_joints"):  # CMU humanoid: mocap poses can be written
+                ids = physics.bind(list(walker.mocap_joints)).element_id
+                self.joint_qpos = np.asarray(physics.model.jnt_qposadr[ids], np.intp)
+                self.joint_dof = np.asarray(physics.model.jnt_dofadr[ids], np.intp)
         else:  # rolling ball: slide joints root_x, root_y on the attachment frame
             self.free_adr = None
             joints = list(walker._root_joints[:2])  # made by create_root_joints on the attachment frame
             self.slide_adr = np.asarray(physics.model.jnt_qposadr[physics.bind(joints).element_id])
+
+    def start(self, data, xy, yaw: float | None, rng: np.random.Generator) -> None:
+        """An episode's start state: a pose of the bank when one is set (the paper starts
+        from mocap poses), else dm_control's upright pose; `yaw` None keeps the default heading."""
+        if self.pose_bank is None:
+            self.place(data.qpos, xy, yaw)
+            return
+        i = int(rng.integers(len(self.pose_bank)))
+        self.pose_bank.write(i, data.qpos, data.qvel, self.free_adr, self.free_dof, self.joint_qpos,
+                             self.joint_dof, xy, 0.0 if yaw is None else yaw)
 
     def place(self, qpos: np.ndarray, xy, yaw: float | None) -> None:
         """Writes the upright pose shifted to `xy` and turned by `yaw` into `qpos`."""
@@ -102,7 +118,7 @@ class GoToTargetLogic(TaskLogic):
 
     def reset(self, model, data, rng):
         model.site_pos[self.site] = [*rng.uniform(-self.half_size, self.half_size), 0.0]
-        self.placement.place(data.qpos, rng.uniform(-self.half_size, self.half_size), None)
+        self.placement.start(data, rng.uniform(-self.half_size, self.half_size), None, rng)
         self.failure = False
         self.counter = 0
 
@@ -147,7 +163,7 @@ class CorridorLogic(TaskLogic):
         self.failure = False
 
     def reset(self, model, data, rng):
-        self.placement.place(data.qpos, self.spawn_xy, None)
+        self.placement.start(data, self.spawn_xy, None, rng)
         self.failure = False
 
     def after_step(self, model, data, rng):
@@ -209,7 +225,7 @@ class MazeLogic(TaskLogic):
         model.mat_rgba[self.target_materials, 3] = 1.0
         self.reward_of_type = self.type_rewards[rng.permutation(len(self.type_rewards))]
         yaw = rng.uniform(0, 2 * np.pi) if self.random_spawn_rotation else None
-        self.placement.place(data.qpos, self.spawns[rng.integers(len(self.spawns))], yaw)
+        self.placement.start(data, self.spawns[rng.integers(len(self.spawns))], yaw, rng)
         self.activated[:] = False
         self.rewarded[:] = False
         self.failure = False

@@ -6,15 +6,36 @@ hvc.mocap.source); both are filled in here, once, before any env is built.
 """
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from hvc.config import group_config
 
+log = logging.getLogger(__name__)
+
 
 def _plain(node) -> Any:
     return OmegaConf.to_container(node, resolve=True)
+
+
+def _with_start_poses(cfg: DictConfig, task: dict, body: dict) -> dict:
+    """Adds the clip set's entries and mocap file, the source of the start poses, to a
+    navigation task of the humanoid; without a mocap file the body starts upright (logged)."""
+    if not (task.get("init_from_clips") and body.get("humanoid")):
+        return task
+    from hvc.mocap.clip_sets import entries_of, resolve
+    from hvc.mocap.source import find_mocap_file
+
+    try:
+        mocap_file = find_mocap_file(cfg.mocap_file, str(body.get("model_version", "2019")))
+    except FileNotFoundError as error:
+        log.warning("start poses: %s; the body starts upright instead", error)
+        return task
+    task["init_clips"] = [e.as_dict() for e in resolve(entries_of(cfg.clips), str(mocap_file))]
+    task["mocap_file"] = str(mocap_file)
+    return task
 
 
 def env_dicts(cfg: DictConfig, entry=None, tracking: bool = False,
@@ -28,7 +49,7 @@ def env_dicts(cfg: DictConfig, entry=None, tracking: bool = False,
     elif tracking:
         task = _plain(OmegaConf.merge(group_config("task", "tracking"), {"reward": _plain(cfg.reward)}))
     else:
-        return _plain(cfg.task), body, render
+        return _with_start_poses(cfg, _plain(cfg.task), body), body, render
     from hvc.mocap.clip_sets import select_entry
     from hvc.mocap.source import find_mocap_file
 
