@@ -1,0 +1,67 @@
+"""Controller interface and the env wrapper that drives a body through a controller."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ActionSpace:
+    """A discrete choice among `n`, or a continuous vector of `size` within [low, high]."""
+
+    discrete: bool
+    n: int = 0
+    size: int = 0
+    low: float = -1.0
+    high: float = 1.0
+
+    def sample(self, rng: np.random.Generator):
+        if self.discrete:
+            return int(rng.integers(self.n))
+        return rng.uniform(self.low, self.high, self.size).astype(np.float32)
+
+
+class Controller(Protocol):
+    action_space: ActionSpace
+
+    def reset(self) -> None: ...
+    def needs_action(self) -> bool: ...
+    def set_action(self, action: Any) -> None: ...
+    def body_action(self, obs: dict[str, np.ndarray]) -> np.ndarray: ...
+
+
+class ControlledEnv:
+    """A FastEnv driven through a controller. `step(hl_action)` consumes `hl_action` only
+    when `needs_action` is true (pass None otherwise); `info["new_action"]` says whether it
+    was consumed, which is where the paper's policy-gradient loss applies."""
+
+    def __init__(self, env, controller: Controller):
+        self.env, self.controller = env, controller
+        self.obs: dict[str, np.ndarray] | None = None
+
+    @property
+    def action_space(self) -> ActionSpace:
+        return self.controller.action_space
+
+    @property
+    def needs_action(self) -> bool:
+        return self.controller.needs_action()
+
+    def reset(self) -> dict[str, np.ndarray]:
+        self.obs = self.env.reset()
+        self.controller.reset()
+        return self.obs
+
+    def step(self, hl_action=None):
+        new_action = self.controller.needs_action()
+        if new_action:
+            if hl_action is None:
+                raise ValueError("the controller needs a new high-level action (needs_action is true)")
+            self.controller.set_action(hl_action)
+        self.obs, reward, discount, done = self.env.step(self.controller.body_action(self.obs))
+        return self.obs, reward, discount, done, {"new_action": new_action}
+
+    def close(self) -> None:
+        self.env.close()

@@ -1,0 +1,49 @@
+"""Control fragments (Sec. 2.2): cold switching among short pieces of the experts.
+
+Fragment j of clip c starts at time index j * T of that clip's expert; choosing it runs
+the expert from there for T control steps (fewer for a clip's last fragment), the time
+input ticking as during tracking. Nothing was trained for the switches themselves.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from hvc.controllers.base import ActionSpace
+from hvc.lowlevel.evaluation import policy_observation
+from hvc.mocap.clip_sets import ClipEntry, Fragment, fragments
+
+
+class FragmentsController:
+    def __init__(self, library, fragment_len: int):
+        self.library = library
+        self.fragment_len = int(fragment_len)
+        entries = [ClipEntry(**e.entry) for e in library.experts]
+        self.fragments: list[Fragment] = fragments(entries, self.fragment_len)
+        self.action_space = ActionSpace(discrete=True, n=len(self.fragments))
+        self.current: Fragment | None = None
+        self.step_in_fragment = 0
+
+    def reset(self) -> None:
+        self.current, self.step_in_fragment = None, 0
+
+    def needs_action(self) -> bool:
+        return self.current is None or self.step_in_fragment >= self.current.length
+
+    def set_action(self, action) -> None:
+        index = int(action)
+        if not 0 <= index < len(self.fragments):
+            raise ValueError(f"fragment {index} outside 0..{len(self.fragments) - 1}")
+        self.current, self.step_in_fragment = self.fragments[index], 0
+
+    def body_action(self, obs) -> np.ndarray:
+        fragment = self.current
+        expert = self.library.experts[fragment.clip]
+        t = min(fragment.start + self.step_in_fragment, expert.reference.num_steps - 1)
+        self.step_in_fragment += 1
+        ll_obs = policy_observation({"proprio": obs["proprio"], "task": expert.reference.phase[t:t + 1]})
+        return expert.act(ll_obs)
+
+    @property
+    def fragment_index(self) -> tuple[int, int] | None:
+        """(clip, start) of the running fragment, for episode records."""
+        return None if self.current is None else (self.current.clip, self.current.start)

@@ -1,0 +1,97 @@
+"""Controllers drive the body: fragments run the right expert at the right time index."""
+import numpy as np
+import pytest
+import torch
+
+from conftest import plain_cfg
+from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
+from hvc.controllers.base import ControlledEnv
+from hvc.controllers.end_to_end import EndToEndController
+from hvc.controllers.factory import ControllerUnavailable, build_controller
+from hvc.controllers.fragments import FragmentsController
+from hvc.controllers.query import QueryController
+from hvc.envs.fast_env import FastEnv
+from hvc.lowlevel.library import Expert, ExpertLibrary
+from hvc.mocap.reference import Reference
+
+
+def _reference(n, seed):
+    rng = np.random.default_rng(seed)
+    quat = np.tile([1.0, 0, 0, 0], (n, 1))
+    return Reference(f"CMU_00{seed}_01", 0.03, False, rng.normal(size=(n, 56)), rng.normal(size=(n, 56)),
+                     rng.normal(size=(n, 3)), quat, rng.normal(size=(n, 3)), rng.normal(size=(n, 3)),
+                     rng.normal(size=(n, 4, 3)), np.linspace(0, 1, n))
+
+
+@pytest.fixture(scope="module")
+def library():
+    experts = []
+    for seed, n in ((1, 7), (2, 4)):
+        torch.manual_seed(seed)
+        policy = NumpyPolicy.from_torch(GaussianPolicy(137, 56, [32], 0.1))
+        experts.append(Expert({"id": f"CMU_00{seed}_01", "behaviour": f"b{seed}", "start": 0, "end": n}, policy,
+                              _reference(n, seed)))
+    return ExpertLibrary(experts, {})
+
+
+@pytest.fixture(scope="module")
+def env():
+    task, body, render = plain_cfg("task=go_to_target")
+    made = FastEnv.build(task, body, render, seed=0)
+    yield made
+    made.close()
+
+
+def test_fragments_run_each_expert_from_its_start_for_t_steps(library, env):
+    controller = FragmentsController(library, fragment_len=3)
+    assert controller.action_space.n == 3 + 2  # ceil(7/3) + ceil(4/3)
+    wrapped = ControlledEnv(env, controller)
+    obs = wrapped.reset()
+    assert wrapped.needs_action
+    fragment = 1  # clip 0, start 3
+    news = []
+    for i in range(3):
+        expert = library.experts[0]
+        expected = expert.act(np.concatenate([obs["proprio"], [expert.reference.phase[3 + i]]]))
+        obs, _, _, done, info = wrapped.step(fragment if wrapped.needs_action else None)
+        np.testing.assert_allclose(env.data.ctrl[env.layout.actuators], np.clip(expected, -1, 1), atol=1e-6)
+        news.append(info["new_action"])
+    assert news == [True, False, False] and wrapped.needs_action
+    # the last fragment of clip 1 (start 3, one step long)
+    wrapped.step(4)
+    assert controller.fragment_index == (1, 3) and wrapped.needs_action
+    with pytest.raises(ValueError, match="needs a new high-level action"):
+        wrapped.step(None)
+    with pytest.raises(ValueError, match="outside"):
+        controller.set_action(5)
+
+
+@pytest.mark.parametrize("fragment_len,expected", [(1, 11), (2, 6), (10, 2)])
+def test_fragment_count_follows_fragment_len(library, fragment_len, expected):
+    assert FragmentsController(library, fragment_len).action_space.n == expected
+
+
+def test_query_selects_the_nearest_key(library, env):
+    controller = QueryController(library, fragment_len=3, k_nearest=2)
+    assert controller.keys.shape == (5, 36) and controller.action_space.size == 36
+    target = controller.keys[2] + 0.01
+    nearest = controller.nearest(target)
+    assert len(nearest) == 2 and 2 in nearest
+    controller.set_action(target)
+    assert controller.current == controller.fragments[2]
+
+
+def test_end_to_end_passes_the_action_every_step(env):
+    controller = EndToEndController(env.action_low, env.action_high)
+    wrapped = ControlledEnv(env, controller)
+    wrapped.reset()
+    action = np.full(env.action_size, 2.0)
+    _, _, _, _, info = wrapped.step(action)
+    assert info["new_action"] and wrapped.needs_action
+    np.testing.assert_allclose(env.data.ctrl[env.layout.actuators], env.action_high)  # clipped
+
+
+def test_structured_controllers_say_what_they_need(env):
+    for name in ("steerable", "switching"):
+        with pytest.raises(ControllerUnavailable, match=f"controller={name} needs"):
+            build_controller({"name": name}, env)
