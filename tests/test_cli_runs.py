@@ -67,3 +67,29 @@ def test_mocap_stages_end_to_end(tmp_path):
     assert "playback clip=CMU_016_24 steps=83" in playback  # a clip outside the set: all of it
     videos = list((tmp_path / "outputs").rglob("playback_CMU_016_24.mp4"))
     assert videos and videos[0].stat().st_size > 1000
+
+
+def test_main_job_drives_fragments_of_a_library(tmp_path):
+    import json
+
+    import numpy as np
+    import torch
+
+    from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
+    from hvc.lowlevel.library import Expert, ExpertLibrary
+    from hvc.mocap.reference import Reference
+
+    experts = []
+    for i, n in enumerate((9, 6)):
+        torch.manual_seed(i)
+        rng = np.random.default_rng(i)
+        ref = Reference(f"CMU_00{i}_01", 0.03, False, rng.normal(size=(n, 56)), rng.normal(size=(n, 56)),
+                        rng.normal(size=(n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), rng.normal(size=(n, 3)),
+                        rng.normal(size=(n, 3)), rng.normal(size=(n, 4, 3)), np.linspace(0, 1, n))
+        experts.append(Expert({"id": ref.clip_id, "behaviour": f"b{i}", "start": 0, "end": n},
+                              NumpyPolicy.from_torch(GaussianPolicy(137, 56, [16], 0.1)), ref))
+    path = ExpertLibrary(experts, {}).save(tmp_path / "lib.npz")
+    _run("total_steps=60", f"library={path}", "fragment_len=3", "task.init_from_clips=false", cwd=tmp_path)
+    [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["hl_actions"] >= 60 // 3  # a new fragment at least every 3 steps

@@ -21,24 +21,45 @@ class WorkerError(RuntimeError):
     pass
 
 
-def _worker(conn, index: int, task, body, render_settings, seed: int) -> None:
+def _driven(env, controller, library, clip_set):
+    """The env driven through the configured controller, or None with the reason it can't be."""
+    from hvc.controllers.base import ControlledEnv
+    from hvc.controllers.factory import ControllerUnavailable, build_controller
+
+    try:
+        return ControlledEnv(env, build_controller(controller, env, library, clip_set)), None
+    except (ControllerUnavailable, FileNotFoundError) as error:
+        return None, str(error)
+
+
+def _worker(conn, index: int, task, body, render_settings, seed: int, controller, library, clip_set) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
+        from hvc.controllers.base import ActionSpace
         from hvc.envs.fast_env import FastEnv
 
         env = FastEnv.build(task, body, render_settings, seed=seed)
+        driven, why_not = _driven(env, controller, library, clip_set) if controller else (None, None)
+        space = driven.action_space if driven else ActionSpace(
+            discrete=False, size=env.action_size, low=float(env.action_low.min()), high=float(env.action_high.max()))
         conn.send(("ready", {"action_size": env.action_size, "action_low": env.action_low,
-                             "action_high": env.action_high, "observation_sizes": env.observation_sizes}))
+                             "action_high": env.action_high, "observation_sizes": env.observation_sizes,
+                             "action_space": space, "controller": controller["name"] if driven else None,
+                             "why_not": why_not}))
         while True:
             command, payload = conn.recv()
             if command == "reset":
-                conn.send(("ok", env.reset()))
+                conn.send(("ok", driven.reset() if driven else env.reset()))
             elif command == "step":
-                obs, reward, discount, done = env.step(payload)
                 info = {}
+                if driven:
+                    obs, reward, discount, done, step_info = driven.step(payload if driven.needs_action else None)
+                    info["new_action"] = step_info["new_action"]
+                else:
+                    obs, reward, discount, done = env.step(payload)
                 if done:
-                    info = {"episode_return": env.episode_return, "episode_length": env.episode_steps}
-                    obs = env.reset()
+                    info.update(episode_return=env.episode_return, episode_length=env.episode_steps)
+                    obs = driven.reset() if driven else env.reset()
                 conn.send(("ok", (obs, reward, discount, done, info)))
             elif command == "crash":  # for tests: a worker failing mid-run
                 raise RuntimeError(str(payload))
@@ -60,10 +81,14 @@ class VectorEnv:
 
     `step(actions)` returns stacked observations, rewards, discounts, dones and a list of
     per-env info dicts holding `episode_return`/`episode_length` when an episode ended.
+    With a `controller` config, each env is driven through it (hvc.controllers) and the
+    actions are high-level ones (used only when the controller asks: `new_action`).
     """
 
     def __init__(self, task: Mapping[str, Any], body: Mapping[str, Any],
-                 render_settings: Mapping[str, Any] | None, num_envs: int, seed: int = 0):
+                 render_settings: Mapping[str, Any] | None, num_envs: int, seed: int = 0,
+                 controller: Mapping[str, Any] | None = None, library: str | None = None,
+                 clip_set: str = "go_to_target"):
         self.task_name = task["name"]
         self.num_envs = num_envs
         ctx = mp.get_context("spawn")
@@ -72,7 +97,8 @@ class VectorEnv:
             parent, child = ctx.Pipe()
             proc = ctx.Process(target=_worker, args=(child, i, dict(task), dict(body),
                                                       None if render_settings is None else dict(render_settings),
-                                                      seed + i), daemon=True, name=f"hvc-env-{i}")
+                                                      seed + i, None if controller is None else dict(controller),
+                                                      library, clip_set), daemon=True, name=f"hvc-env-{i}")
             proc.start()
             child.close()
             self._conns.append(parent)
@@ -81,6 +107,9 @@ class VectorEnv:
         self.action_size = specs[0]["action_size"]
         self.action_low, self.action_high = specs[0]["action_low"], specs[0]["action_high"]
         self.observation_sizes = specs[0]["observation_sizes"]
+        self.action_space = specs[0]["action_space"]          # what step() takes
+        self.controller = specs[0]["controller"]              # None: raw body actions
+        self.why_no_controller = specs[0]["why_not"]
         self.closed = False
 
     def _send(self, index: int, message) -> None:
@@ -126,8 +155,9 @@ class VectorEnv:
         return (self._stack(list(obs)), np.asarray(rewards, np.float32), np.asarray(discounts, np.float32),
                 np.asarray(dones, bool), list(infos))
 
-    def random_actions(self, rng: np.random.Generator) -> np.ndarray:
-        return rng.uniform(self.action_low, self.action_high, (self.num_envs, self.action_size)).astype(np.float32)
+    def random_actions(self, rng: np.random.Generator) -> list:
+        """One random action per env from the action space step() takes."""
+        return [self.action_space.sample(rng) for _ in range(self.num_envs)]
 
     def close(self) -> None:
         if getattr(self, "closed", False):

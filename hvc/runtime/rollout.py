@@ -1,15 +1,18 @@
-"""The main job until high-level training lands: random body actions on the fast env.
+"""The main job until high-level training lands: random actions on the fast env.
 
-It exercises everything a training run will use (task, body, fast env, vector env,
-metrics, progress, video) and gives the random-policy baseline of each task.
+The actions are high-level ones through the configured controller (fragments of the
+expert library, queries, or end_to_end body actions) when it can be built, else random
+body actions (logged). It exercises what a training run will use (task, body, fast env,
+controller, vector env, metrics, progress, video) and gives each task's random baseline.
 """
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from hvc.envs.fast_env import FastEnv
@@ -19,6 +22,7 @@ from hvc.runtime.env_config import env_dicts
 from hvc.runtime.metrics import MetricsLogger
 from hvc.runtime.video import write_video
 
+log = logging.getLogger(__name__)
 VIDEO_CAMERAS = ("walker/back", "walker/side", "walker/egocentric")
 
 
@@ -31,15 +35,24 @@ def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
     with MetricsLogger(run_dir / "metrics.csv") as metrics, \
             tqdm(total=cfg.total_steps, desc=f"rollout {task['name']}", unit="step",
                  disable=None, mininterval=1.0) as bar:
-        env = VectorEnv(task, body, render, cfg.num_envs, seed=cfg.seed)
+        env = VectorEnv(task, body, render, cfg.num_envs, seed=cfg.seed,
+                        controller=OmegaConf.to_container(cfg.controller, resolve=True),
+                        library=cfg.get("library"), clip_set=str(cfg.clips.name))
+        if env.controller is None:
+            log.warning("rollout drives the body with random actions: %s", env.why_no_controller)
+        else:
+            log.info("rollout: random high-level actions through controller=%s (%s)", env.controller,
+                     f"{env.action_space.n} choices" if env.action_space.discrete else f"{env.action_space.size}-D")
+        hl_actions = 0
         try:
             env.reset()
             while steps < cfg.total_steps:
                 _, rewards, _, dones, infos = env.step(env.random_actions(rng))
                 before, steps = steps, steps + env.num_envs
                 bar.update(env.num_envs)
+                hl_actions += sum(bool(info.get("new_action")) for info in infos)
                 for info in infos:
-                    if info:
+                    if "episode_return" in info:
                         returns.append(info["episode_return"])
                         metrics.log(steps, {"episode_return": info["episode_return"],
                                             "episode_length": info["episode_length"]})
@@ -47,10 +60,11 @@ def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
                     sps = steps / (time.perf_counter() - start)
                     metrics.log(steps, {"steps_per_second": sps})
                     bar.set_postfix(sps=f"{sps:.0f}", ret=f"{np.mean(returns[-10:]):.2f}" if returns else "-")
-            metrics.log(steps, {"steps_per_second": steps / (time.perf_counter() - start)})
+            metrics.log(steps, {"steps_per_second": steps / (time.perf_counter() - start),
+                                "hl_actions": hl_actions})
         finally:
             env.close()
-    summary = {"env_steps": steps, "episodes": len(returns),
+    summary = {"env_steps": steps, "episodes": len(returns), "hl_actions": hl_actions,
                "mean_episode_return": float(np.mean(returns)) if returns else float("nan")}
     if cfg.video:
         summary["video"] = str(record_video(cfg, run_dir / "rollout.mp4"))
