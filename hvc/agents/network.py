@@ -1,0 +1,122 @@
+"""The high-level agent (Appendix A, Fig. A.1): encoders -> LSTM core -> heads.
+
+Proprioception is encoded by one linear layer; for vision tasks a 64x64 image by an
+IMPALA-style ResNet; both, with the previous reward and previous action, are
+concatenated into an LSTM whose size is the task's (Table A.1). The policy head is an
+LSTM of 128 followed by a linear layer (logits, or a Gaussian's mean and sigma); the
+value / Q head is an MLP of the task's sizes. The core ticks every control step.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from hvc.agents.mlp import mlp
+
+
+class ResidualBlock(nn.Module):
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.conv2(torch.relu(self.conv1(torch.relu(x))))
+
+
+class ImageEncoder(nn.Module):
+    """IMPALA ResNet: per stage a conv, a 3x3 max-pool with stride 2 and two residual blocks."""
+
+    def __init__(self, channels: Sequence[int] = (16, 32, 32), out_size: int = 256, image_size: int = 64):
+        super().__init__()
+        layers: list[nn.Module] = []
+        c_in = 3
+        for c in channels:
+            layers += [nn.Conv2d(c_in, c, 3, padding=1), nn.MaxPool2d(3, stride=2, padding=1),
+                       ResidualBlock(c), ResidualBlock(c)]
+            c_in = c
+        self.body = nn.Sequential(*layers)
+        side = image_size
+        for _ in channels:
+            side = (side + 1) // 2
+        self.out = nn.Linear(c_in * side * side, out_size)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        """image: [..., H, W, 3] uint8."""
+        lead = image.shape[:-3]
+        x = image.reshape(-1, *image.shape[-3:]).permute(0, 3, 1, 2).float() / 255.0
+        x = torch.relu(self.body(x)).flatten(1)
+        return torch.relu(self.out(x)).reshape(*lead, -1)
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    proprio_size: int
+    task_size: int
+    action_size: int          # discrete: number of choices; continuous: dimension
+    discrete: bool
+    lstm_size: int            # Table A.1
+    value_mlp: tuple[int, ...]  # Table A.1, ending in 1
+    vision: bool = False
+    proprio_out: int = 128
+    policy_lstm: int = 128    # Appendix A: the policy head's LSTM
+    critic_takes_action: bool = False  # Q(h, a) for SVG(0) / Wolpertinger
+
+
+class HighLevelAgent(nn.Module):
+    def __init__(self, spec: AgentSpec):
+        super().__init__()
+        self.spec = spec
+        self.proprio = nn.Linear(spec.proprio_size + spec.task_size, spec.proprio_out)
+        self.image = ImageEncoder() if spec.vision else None
+        core_in = spec.proprio_out + (256 if spec.vision else 0) + 1 + spec.action_size
+        self.core = nn.LSTM(core_in, spec.lstm_size)
+        self.policy_core = nn.LSTM(spec.lstm_size, spec.policy_lstm)
+        self.policy_out = nn.Linear(spec.policy_lstm, spec.action_size if spec.discrete else 2 * spec.action_size)
+        value_in = spec.lstm_size + (spec.action_size if spec.critic_takes_action else 0)
+        self.value = mlp([value_in, *spec.value_mlp])
+
+    def initial_state(self, batch: int) -> tuple[torch.Tensor, ...]:
+        z = lambda n: torch.zeros(1, batch, n)  # noqa: E731
+        return (z(self.spec.lstm_size), z(self.spec.lstm_size), z(self.spec.policy_lstm), z(self.spec.policy_lstm))
+
+    def forward(self, proprio: torch.Tensor, task: torch.Tensor, prev_reward: torch.Tensor,
+                prev_action: torch.Tensor, state: tuple[torch.Tensor, ...], image: torch.Tensor | None = None,
+                done: torch.Tensor | None = None):
+        """Time-major inputs [T, B, ...]; `done` [T, B] resets the LSTM state before a step
+        that starts a new episode. Returns (policy output, core features h, new state)."""
+        feats = [torch.relu(self.proprio(torch.cat([proprio, task], -1)))]
+        if self.image is not None:
+            feats.append(self.image(image))
+        if self.spec.discrete:
+            prev = nn.functional.one_hot(prev_action.long(), self.spec.action_size).float()
+        else:
+            prev = prev_action
+        x = torch.cat(feats + [prev_reward[..., None], prev], -1)
+        h_c, c_c, h_p, c_p = state
+        core_out, policy_out = [], []
+        for t in range(x.shape[0]):
+            if done is not None:
+                keep = (1.0 - done[t].float())[None, :, None]
+                h_c, c_c, h_p, c_p = h_c * keep, c_c * keep, h_p * keep, c_p * keep
+            out, (h_c, c_c) = self.core(x[t:t + 1], (h_c, c_c))
+            pol, (h_p, c_p) = self.policy_core(out, (h_p, c_p))
+            core_out.append(out)
+            policy_out.append(pol)
+        h = torch.cat(core_out, 0)
+        return self.policy_out(torch.cat(policy_out, 0)), h, (h_c, c_c, h_p, c_p)
+
+    def values(self, h: torch.Tensor, action: torch.Tensor | None = None) -> torch.Tensor:
+        inputs = h if action is None else torch.cat([h, action], -1)
+        return self.value(inputs).squeeze(-1)
+
+    def gaussian(self, policy_output: torch.Tensor, low: float, high: float, sigma_clip=(0.1, 1.0)):
+        """Steering-style Gaussian: tanh-squashed mean scaled to [low, high], sigma clipped."""
+        mean_raw, sigma_raw = policy_output.chunk(2, -1)
+        scale, centre = (high - low) / 2, (high + low) / 2
+        mean = centre + scale * torch.tanh(mean_raw)
+        sigma = torch.clamp(nn.functional.softplus(sigma_raw), *sigma_clip)
+        return mean, sigma
