@@ -33,6 +33,10 @@ def _run(cfg: DictConfig) -> None:
         from hvc.runtime.rollout import run_rollout
 
         summary = run_rollout(cfg, run_dir)
+    elif cfg.stage == "train":
+        from hvc.runtime.hl_train import run_hl_training
+
+        summary = run_hl_training(cfg, run_dir)
     elif cfg.stage == "lowlevel":
         from hvc.runtime.lowlevel_stage import run_lowlevel
 

@@ -69,9 +69,8 @@ def test_mocap_stages_end_to_end(tmp_path):
     assert videos and videos[0].stat().st_size > 1000
 
 
-def test_main_job_drives_fragments_of_a_library(tmp_path):
-    import json
-
+def _tiny_library(path):
+    """A two-expert library with random weights: enough to drive the fragments controller."""
     import numpy as np
     import torch
 
@@ -88,8 +87,34 @@ def test_main_job_drives_fragments_of_a_library(tmp_path):
                         rng.normal(size=(n, 3)), rng.normal(size=(n, 4, 3)), np.linspace(0, 1, n))
         experts.append(Expert({"id": ref.clip_id, "behaviour": f"b{i}", "start": 0, "end": n},
                               NumpyPolicy.from_torch(GaussianPolicy(137, 56, [16], 0.1)), ref))
-    path = ExpertLibrary(experts, {}).save(tmp_path / "lib.npz")
+    return ExpertLibrary(experts, {}).save(path)
+
+
+def test_main_job_drives_fragments_of_a_library(tmp_path):
+    import json
+
+    path = _tiny_library(tmp_path / "lib.npz")
     _run("total_steps=60", f"library={path}", "fragment_len=3", "task.init_from_clips=false", cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["hl_actions"] >= 60 // 3  # a new fragment at least every 3 steps
+
+
+@pytest.mark.parametrize("task", ["go_to_target", "gaps"])
+def test_high_level_training_runs_logs_and_resumes(tmp_path, task):
+    import torch
+
+    path = _tiny_library(tmp_path / "lib.npz")
+    common = [f"task={task}", "stage=train", f"library={path}", "task.init_from_clips=false", "num_envs=2",
+              "log_every=20", "hl.random_episodes=2", "hl.min_replay_unrolls=2", "algorithm.batch_size=4",
+              "task.layout_pool=1"]
+    _run("total_steps=80", *common, cwd=tmp_path)
+    [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
+    metrics = pd.read_csv(run_dir / "metrics.csv")
+    assert {"random_return", "episode_return", "value_loss", "pg_loss"} <= set(metrics.key)
+    assert metrics.learner_steps.max() > 0
+    first = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    _run("total_steps=160", *common, f"resume={run_dir}", cwd=tmp_path)
+    second = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    assert second["counters"]["env_steps"] >= 160 > first["counters"]["env_steps"]
+    assert second["counters"]["updates"] > first["counters"]["updates"]

@@ -1,0 +1,267 @@
+"""High-level training for the discrete controllers (fragments, switching) with V-trace.
+
+Actors: `num_envs` worker processes (hvc.envs.vector_env) each run the env, its
+controller and the low-level experts; the high-level policy runs batched in this
+process (central inference, as in SEED RL: on a 2-core machine one torch copy per actor
+only competes for the cores). Fixed-length unrolls (Table A.1 `unroll`) with the LSTM
+state at their start go into a replay buffer (Table A.1 `replay_size`, in transitions);
+the learner samples unrolls, replays the LSTM from the stored state and applies V-trace
+(hvc.algorithms.vtrace): value loss every step, policy gradient and entropy only where a
+new high-level action was taken. The x-axis of the paper's curves, transitions processed
+by the learner, is logged as `learner_steps`; env steps as `env_steps`.
+
+Checkpoints (agent, optimiser, counters, replay position, RNG states) every
+`hl.checkpoint_seconds` and on exit; `resume=<run dir>` continues. A non-finite loss
+stops the run naming the last good checkpoint.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from hvc.agents.network import AgentSpec, HighLevelAgent
+from hvc.algorithms.vtrace import vtrace_losses, vtrace_targets
+from hvc.envs.vector_env import VectorEnv
+from hvc.runtime.env_config import env_dicts
+from hvc.runtime.metrics import MetricsLogger
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Unrolls:
+    """A ring of unrolls, batch-major numpy; images stored as uint8."""
+
+    proprio: np.ndarray      # [U, N+1, P]
+    task: np.ndarray         # [U, N+1, K]
+    image: np.ndarray | None  # [U, N+1, 64, 64, 3]
+    prev_reward: np.ndarray  # [U, N+1]
+    prev_action: np.ndarray  # [U, N+1] int
+    first: np.ndarray        # [U, N+1] 1 where a new episode starts (LSTM reset)
+    action: np.ndarray       # [U, N] int
+    log_mu: np.ndarray       # [U, N]
+    reward: np.ndarray       # [U, N]
+    discount: np.ndarray     # [U, N]
+    new_action: np.ndarray   # [U, N]
+    state: np.ndarray        # [U, 4, H] LSTM state at the unroll's start (core h, c; policy h, c)
+    size: int = 0
+    position: int = 0
+
+    @classmethod
+    def allocate(cls, capacity: int, n: int, proprio: int, task: int, vision: bool, lstm: int, policy_lstm: int):
+        hidden = max(lstm, policy_lstm)
+        z = lambda *s, dt=np.float32: np.zeros(s, dt)  # noqa: E731
+        return cls(z(capacity, n + 1, proprio), z(capacity, n + 1, task),
+                   z(capacity, n + 1, 64, 64, 3, dt=np.uint8) if vision else None, z(capacity, n + 1),
+                   z(capacity, n + 1, dt=np.int64), z(capacity, n + 1), z(capacity, n, dt=np.int64), z(capacity, n),
+                   z(capacity, n), z(capacity, n), z(capacity, n), z(capacity, 4, hidden))
+
+    @property
+    def capacity(self) -> int:
+        return self.proprio.shape[0]
+
+    def add(self, **fields) -> None:
+        i = self.position
+        for name, value in fields.items():
+            getattr(self, name)[i] = value
+        self.position = (i + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
+        idx = rng.integers(0, self.size, batch)
+        out = {}
+        for name in ("proprio", "task", "image", "prev_reward", "prev_action", "first", "action", "log_mu",
+                     "reward", "discount", "new_action"):
+            array = getattr(self, name)
+            if array is not None:
+                out[name] = torch.from_numpy(np.swapaxes(array[idx], 0, 1).copy())
+        out["state"] = torch.from_numpy(self.state[idx].copy())
+        return out
+
+
+def _split_state(agent: HighLevelAgent, packed: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    spec = agent.spec
+    sizes = (spec.lstm_size, spec.lstm_size, spec.policy_lstm, spec.policy_lstm)
+    return tuple(packed[:, k, :n][None].contiguous() for k, n in enumerate(sizes))
+
+
+def _pack_state(state: tuple[torch.Tensor, ...], hidden: int) -> np.ndarray:
+    out = np.zeros((state[0].shape[1], 4, hidden), np.float32)
+    for k, s in enumerate(state):
+        out[:, k, :s.shape[-1]] = s[0].numpy()
+    return out
+
+
+def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
+    if not cfg.controller.discrete:
+        raise NotImplementedError(
+            f"high-level training of controller={cfg.controller.name} (SVG(0) + Retrace / Wolpertinger with a "
+            f"recurrent critic) is not implemented yet; discrete controllers (fragments, switching) train with V-trace")
+    torch.set_num_threads(1)
+    hl, agent_cfg = cfg.hl, cfg.task.agent
+    rng = np.random.default_rng(cfg.seed)
+    torch.manual_seed(cfg.seed)
+    task, body, render = env_dicts(cfg)
+    envs = VectorEnv(task, body, render, cfg.num_envs, seed=cfg.seed,
+                     controller=OmegaConf.to_container(cfg.controller, resolve=True), library=cfg.get("library"),
+                     clip_set=str(cfg.clips.name))
+    if envs.controller is None:
+        envs.close()
+        raise RuntimeError(f"controller={cfg.controller.name} could not be built: {envs.why_no_controller}")
+    vision = "image" in envs.observation_sizes
+    spec = AgentSpec(proprio_size=envs.observation_sizes["proprio"], task_size=envs.observation_sizes["task"],
+                     action_size=envs.action_space.n, discrete=True, lstm_size=int(agent_cfg.lstm_size),
+                     value_mlp=tuple(agent_cfg.value_mlp), vision=vision)
+    agent = HighLevelAgent(spec)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=float(cfg.algorithm.learning_rate))
+    n, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
+    capacity = max(batch, int(agent_cfg.replay_size) // n)
+    hidden = max(spec.lstm_size, spec.policy_lstm)
+    replay = Unrolls.allocate(capacity, n, spec.proprio_size, spec.task_size, vision, spec.lstm_size,
+                              spec.policy_lstm)
+    counters = {"env_steps": 0, "updates": 0, "episodes": 0}
+    checkpoint = run_dir / "checkpoint.pt"
+    if checkpoint.exists():
+        state = torch.load(checkpoint, weights_only=True)
+        agent.load_state_dict(state["agent"])
+        optimizer.load_state_dict(state["optimizer"])
+        counters = {k: int(v) for k, v in state["counters"].items()}
+        rng.bit_generator.state = json.loads(state["rng"])
+        torch.set_rng_state(state["torch_rng"])
+        log.info("resumed from %s at env step %d (replay refills)", checkpoint, counters["env_steps"])
+
+    def save() -> None:
+        tmp = checkpoint.with_suffix(".tmp")
+        torch.save({"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "counters": counters,
+                    "replay_position": replay.position, "rng": json.dumps(rng.bit_generator.state),
+                    "torch_rng": torch.get_rng_state()}, tmp)
+        os.replace(tmp, checkpoint)
+
+    gamma, entropy_cost = float(agent_cfg.gamma), float(cfg.algorithm.entropy_cost)
+    metrics = MetricsLogger(run_dir / "metrics.csv")
+    E = envs.num_envs
+    obs = envs.reset()
+    lstm = agent.initial_state(E)
+    prev_reward, prev_action, first = np.zeros(E, np.float32), np.zeros(E, np.int64), np.ones(E, np.float32)
+    returns: list[float] = []
+    start, last_save, last_log = time.perf_counter(), time.monotonic(), counters["env_steps"]
+    bar = tqdm(total=int(cfg.total_steps), initial=counters["env_steps"], desc="hl train", unit="step",
+               disable=None, mininterval=2.0)
+    try:
+        if counters["env_steps"] == 0 and int(hl.random_episodes) > 0:
+            random_returns = _random_baseline(envs, int(hl.random_episodes), rng)
+            metrics.log(0, {"random_return": float(np.mean(random_returns))})
+            obs = envs.reset()
+        while counters["env_steps"] < int(cfg.total_steps):
+            seq = {k: [] for k in ("proprio", "task", "image", "prev_reward", "prev_action", "first", "action",
+                                   "log_mu", "reward", "discount", "new_action")}
+            start_state = _pack_state(lstm, hidden)
+            for _ in range(n):
+                seq["proprio"].append(obs["proprio"])
+                seq["task"].append(obs["task"])
+                if vision:
+                    seq["image"].append(obs["image"])
+                seq["prev_reward"].append(prev_reward.copy())
+                seq["prev_action"].append(prev_action.copy())
+                seq["first"].append(first.copy())
+                with torch.no_grad():
+                    logits, _, lstm = agent(
+                        torch.from_numpy(obs["proprio"][None]).float(), torch.from_numpy(obs["task"][None]).float(),
+                        torch.from_numpy(prev_reward[None]), torch.from_numpy(prev_action[None]), lstm,
+                        image=torch.from_numpy(obs["image"][None]) if vision else None,
+                        done=torch.from_numpy(first[None]))
+                    dist = torch.distributions.Categorical(logits=logits[0])
+                    action = dist.sample()
+                    log_mu = dist.log_prob(action)
+                obs, rewards, discounts, dones, infos = envs.step(action.numpy())
+                new = np.array([float(i.get("new_action", False)) for i in infos], np.float32)
+                seq["action"].append(action.numpy())
+                seq["log_mu"].append(log_mu.numpy())
+                seq["reward"].append(rewards)
+                seq["discount"].append(discounts)
+                seq["new_action"].append(new)
+                prev_action = np.where(new > 0, action.numpy(), prev_action)
+                prev_reward = rewards.astype(np.float32)
+                first = dones.astype(np.float32)
+                prev_reward[dones] = 0.0
+                prev_action[dones] = 0
+                for info in infos:
+                    if "episode_return" in info:
+                        returns.append(info["episode_return"])
+                        counters["episodes"] += 1
+                counters["env_steps"] += E
+                bar.update(E)
+            # the step after the unroll, for bootstrapping
+            tail = {"proprio": obs["proprio"], "task": obs["task"], "prev_reward": prev_reward,
+                    "prev_action": prev_action, "first": first}
+            for e in range(E):
+                fields = {k: np.stack([s[e] for s in seq[k]] + ([tail[k][e]] if k in tail else []))
+                          for k in ("proprio", "task", "prev_reward", "prev_action", "first")}
+                if vision:
+                    fields["image"] = np.stack([s[e] for s in seq["image"]] + [obs["image"][e]])
+                fields.update({k: np.stack([s[e] for s in seq[k]]) for k in
+                               ("action", "log_mu", "reward", "discount", "new_action")})
+                replay.add(state=start_state[e], **fields)
+            if replay.size >= int(hl.min_replay_unrolls):
+                for _ in range(int(hl.updates_per_unroll)):
+                    info = _update(agent, optimizer, replay.sample(batch, rng), gamma, entropy_cost, cfg.algorithm)
+                    if not all(np.isfinite(v) for v in info.values()):
+                        raise FloatingPointError(f"non-finite loss {info} at env step {counters['env_steps']}; "
+                                                 f"the last good checkpoint is {checkpoint}")
+                    counters["updates"] += 1
+            if counters["env_steps"] - last_log >= int(cfg.log_every) and returns:
+                last_log = counters["env_steps"]
+                row = {"episode_return": float(np.mean(returns)), "episodes": counters["episodes"],
+                       "steps_per_second": (counters["env_steps"]) / (time.perf_counter() - start)}
+                if counters["updates"]:
+                    row.update(info)
+                metrics.log(counters["env_steps"], row, learner_steps=counters["updates"] * batch * n)
+                bar.set_postfix(ret=f"{row['episode_return']:.2f}")
+                returns = []
+            if time.monotonic() - last_save > float(hl.checkpoint_seconds):
+                save()
+                last_save = time.monotonic()
+    finally:
+        save()
+        bar.close()
+        metrics.close()
+        envs.close()
+    return {"env_steps": counters["env_steps"], "learner_steps": counters["updates"] * batch * n,
+            "episodes": counters["episodes"]}
+
+
+def _update(agent, optimizer, b, gamma: float, entropy_cost: float, algorithm) -> dict[str, float]:
+    state = _split_state(agent, b["state"])
+    logits, h, _ = agent(b["proprio"], b["task"], b["prev_reward"], b["prev_action"], state,
+                         image=b.get("image"), done=b["first"])
+    values = agent.values(h)
+    log_pi = torch.log_softmax(logits[:-1], -1).gather(-1, b["action"][..., None]).squeeze(-1)
+    log_rhos = (log_pi.detach() - b["log_mu"]) * b["new_action"]  # held steps chose nothing: rho = 1
+    returns = vtrace_targets(log_rhos, b["discount"], b["reward"], values[:-1].detach(), values[-1].detach(), gamma,
+                             float(algorithm.rho_clip), float(algorithm.c_clip))
+    losses = vtrace_losses(logits[:-1], b["action"], values[:-1], returns, b["new_action"],
+                           torch.ones_like(b["reward"]), entropy_cost)
+    optimizer.zero_grad()
+    losses["loss"].backward()
+    torch.nn.utils.clip_grad_norm_(agent.parameters(), 40.0)
+    optimizer.step()
+    return {k: float(v.detach()) for k, v in losses.items()}
+
+
+def _random_baseline(envs: VectorEnv, episodes: int, rng: np.random.Generator) -> list[float]:
+    """Returns of uniformly random high-level actions: the bar a learning curve must clear."""
+    envs.reset()
+    out: list[float] = []
+    while len(out) < episodes:
+        _, _, _, _, infos = envs.step(envs.random_actions(rng))
+        out += [i["episode_return"] for i in infos if "episode_return" in i]
+    return out[:episodes]
