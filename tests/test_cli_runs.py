@@ -100,18 +100,21 @@ def test_main_job_drives_fragments_of_a_library(tmp_path):
     assert summary["hl_actions"] >= 60 // 3  # a new fragment at least every 3 steps
 
 
-@pytest.mark.parametrize("task", ["go_to_target", "gaps"])
-def test_high_level_training_runs_logs_and_resumes(tmp_path, task):
+@pytest.mark.parametrize("task,extra", [("go_to_target", []), ("gaps", []),
+                                        ("go_to_target", ["body=rolling_ball", "controller=end_to_end",
+                                                          "task.time_limit=1.0"])])
+def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     import torch
 
     path = _tiny_library(tmp_path / "lib.npz")
     common = [f"task={task}", "stage=train", f"library={path}", "task.init_from_clips=false", "num_envs=2",
               "log_every=20", "hl.random_episodes=2", "hl.min_replay_unrolls=2", "algorithm.batch_size=4",
-              "task.layout_pool=1"]
+              "task.layout_pool=1", *extra]
     _run("total_steps=80", *common, cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     metrics = pd.read_csv(run_dir / "metrics.csv")
-    assert {"random_return", "episode_return", "value_loss", "pg_loss"} <= set(metrics.key)
+    losses = {"critic_loss", "policy_loss"} if extra else {"value_loss", "pg_loss"}
+    assert {"random_return", "episode_return"} | losses <= set(metrics.key)
     assert metrics.learner_steps.max() > 0
     first = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     _run("total_steps=160", *common, f"resume={run_dir}", cwd=tmp_path)

@@ -9,6 +9,7 @@ Where dm_control's behaviour is a quirk we deviate on purpose, the docstring say
 from __future__ import annotations
 
 import numpy as np
+from absl import logging as absl_logging
 from dm_control import mjcf
 
 from hvc.rotations import quat_mul, yaw_quat
@@ -20,7 +21,12 @@ class WalkerPlacement:
 
     def __init__(self, walker, physics):
         saved = physics.data.qpos.copy(), physics.data.qvel.copy()
-        walker.reinitialize_pose(physics, np.random.RandomState(0))  # deterministic upright pose
+        verbosity = absl_logging.get_verbosity()
+        absl_logging.set_verbosity(absl_logging.ERROR)  # the ball "cannot set velocity": expected, not news
+        try:
+            walker.reinitialize_pose(physics, np.random.RandomState(0))  # deterministic upright pose
+        finally:
+            absl_logging.set_verbosity(verbosity)
         self.qpos_upright = physics.data.qpos.copy()
         physics.data.qpos[:], physics.data.qvel[:] = saved  # leave the caller's state alone
         physics.forward()

@@ -16,6 +16,7 @@ stops the run naming the last good checkpoint.
 """
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import os
@@ -29,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from hvc.agents.network import AgentSpec, HighLevelAgent
+from hvc.algorithms.retrace import retrace_targets
 from hvc.algorithms.vtrace import vtrace_losses, vtrace_targets
 from hvc.envs.vector_env import VectorEnv
 from hvc.runtime.env_config import env_dicts
@@ -45,9 +47,9 @@ class Unrolls:
     task: np.ndarray         # [U, N+1, K]
     image: np.ndarray | None  # [U, N+1, 64, 64, 3]
     prev_reward: np.ndarray  # [U, N+1]
-    prev_action: np.ndarray  # [U, N+1] int
+    prev_action: np.ndarray  # [U, N+1] int, or [U, N+1, A] for continuous controllers
     first: np.ndarray        # [U, N+1] 1 where a new episode starts (LSTM reset)
-    action: np.ndarray       # [U, N] int
+    action: np.ndarray       # [U, N] int, or [U, N, A]: the high-level action in force
     log_mu: np.ndarray       # [U, N]
     reward: np.ndarray       # [U, N]
     discount: np.ndarray     # [U, N]
@@ -57,12 +59,15 @@ class Unrolls:
     position: int = 0
 
     @classmethod
-    def allocate(cls, capacity: int, n: int, proprio: int, task: int, vision: bool, lstm: int, policy_lstm: int):
+    def allocate(cls, capacity: int, n: int, proprio: int, task: int, vision: bool, lstm: int, policy_lstm: int,
+                 action_size: int | None = None):
+        """`action_size` None: discrete actions (ints); else continuous vectors of that size."""
         hidden = max(lstm, policy_lstm)
         z = lambda *s, dt=np.float32: np.zeros(s, dt)  # noqa: E731
+        act = (lambda *s: z(*s, dt=np.int64)) if action_size is None else (lambda *s: z(*s, action_size))  # noqa: E731
         return cls(z(capacity, n + 1, proprio), z(capacity, n + 1, task),
                    z(capacity, n + 1, 64, 64, 3, dt=np.uint8) if vision else None, z(capacity, n + 1),
-                   z(capacity, n + 1, dt=np.int64), z(capacity, n + 1), z(capacity, n, dt=np.int64), z(capacity, n),
+                   act(capacity, n + 1), z(capacity, n + 1), act(capacity, n), z(capacity, n),
                    z(capacity, n), z(capacity, n), z(capacity, n), z(capacity, 4, hidden))
 
     @property
@@ -102,10 +107,9 @@ def _pack_state(state: tuple[torch.Tensor, ...], hidden: int) -> np.ndarray:
 
 
 def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
-    if not cfg.controller.discrete:
-        raise NotImplementedError(
-            f"high-level training of controller={cfg.controller.name} (SVG(0) + Retrace / Wolpertinger with a "
-            f"recurrent critic) is not implemented yet; discrete controllers (fragments, switching) train with V-trace")
+    if cfg.controller.name == "query":
+        raise NotImplementedError("high-level training of controller=query (Wolpertinger) is not implemented yet; "
+                                  "fragments and switching train with V-trace, end_to_end and steerable with SVG(0)")
     torch.set_num_threads(1)
     hl, agent_cfg = cfg.hl, cfg.task.agent
     rng = np.random.default_rng(cfg.seed)
@@ -118,22 +122,28 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         envs.close()
         raise RuntimeError(f"controller={cfg.controller.name} could not be built: {envs.why_no_controller}")
     vision = "image" in envs.observation_sizes
+    space = envs.action_space
+    discrete = space.discrete
     spec = AgentSpec(proprio_size=envs.observation_sizes["proprio"], task_size=envs.observation_sizes["task"],
-                     action_size=envs.action_space.n, discrete=True, lstm_size=int(agent_cfg.lstm_size),
-                     value_mlp=tuple(agent_cfg.value_mlp), vision=vision)
+                     action_size=space.n if discrete else space.size, discrete=discrete,
+                     lstm_size=int(agent_cfg.lstm_size), value_mlp=tuple(agent_cfg.value_mlp), vision=vision,
+                     critic_takes_action=not discrete)
     agent = HighLevelAgent(spec)
+    learner = None if discrete else ContinuousLearner(agent, cfg.algorithm, cfg.controller, space)
     optimizer = torch.optim.Adam(agent.parameters(), lr=float(cfg.algorithm.learning_rate))
     n, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
     capacity = max(batch, int(agent_cfg.replay_size) // n)
     hidden = max(spec.lstm_size, spec.policy_lstm)
     replay = Unrolls.allocate(capacity, n, spec.proprio_size, spec.task_size, vision, spec.lstm_size,
-                              spec.policy_lstm)
+                              spec.policy_lstm, None if discrete else spec.action_size)
     counters = {"env_steps": 0, "updates": 0, "episodes": 0}
     checkpoint = run_dir / "checkpoint.pt"
     if checkpoint.exists():
         state = torch.load(checkpoint, weights_only=True)
         agent.load_state_dict(state["agent"])
         optimizer.load_state_dict(state["optimizer"])
+        if learner is not None:
+            learner.target.load_state_dict(state["target_agent"])
         counters = {k: int(v) for k, v in state["counters"].items()}
         rng.bit_generator.state = json.loads(state["rng"])
         torch.set_rng_state(state["torch_rng"])
@@ -142,6 +152,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     def save() -> None:
         tmp = checkpoint.with_suffix(".tmp")
         torch.save({"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "counters": counters,
+                    **({"target_agent": learner.target.state_dict()} if learner is not None else {}),
                     "replay_position": replay.position, "rng": json.dumps(rng.bit_generator.state),
                     "torch_rng": torch.get_rng_state()}, tmp)
         os.replace(tmp, checkpoint)
@@ -151,7 +162,8 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     E = envs.num_envs
     obs = envs.reset()
     lstm = agent.initial_state(E)
-    prev_reward, prev_action, first = np.zeros(E, np.float32), np.zeros(E, np.int64), np.ones(E, np.float32)
+    prev_reward, first = np.zeros(E, np.float32), np.ones(E, np.float32)
+    prev_action = np.zeros(E, np.int64) if discrete else np.zeros((E, spec.action_size), np.float32)
     returns: list[float] = []
     start, last_save, last_log = time.perf_counter(), time.monotonic(), counters["env_steps"]
     bar = tqdm(total=int(cfg.total_steps), initial=counters["env_steps"], desc="hl train", unit="step",
@@ -179,17 +191,23 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                         torch.from_numpy(prev_reward[None]), torch.from_numpy(prev_action[None]), lstm,
                         image=torch.from_numpy(obs["image"][None]) if vision else None,
                         done=torch.from_numpy(first[None]))
-                    dist = torch.distributions.Categorical(logits=logits[0])
-                    action = dist.sample()
-                    log_mu = dist.log_prob(action)
-                obs, rewards, discounts, dones, infos = envs.step(action.numpy())
+                    if discrete:
+                        dist = torch.distributions.Categorical(logits=logits[0])
+                        action = dist.sample()
+                        log_mu = dist.log_prob(action).numpy()
+                        action = action.numpy()
+                    else:
+                        action, log_mu = learner.sample(logits[0])
+                obs, rewards, discounts, dones, infos = envs.step(action)
                 new = np.array([float(i.get("new_action", False)) for i in infos], np.float32)
-                seq["action"].append(action.numpy())
-                seq["log_mu"].append(log_mu.numpy())
+                held = new.reshape(-1, *([1] * (action.ndim - 1))) > 0
+                in_force = np.where(held, action, prev_action)  # the action the controller is running
+                seq["action"].append(in_force)
+                seq["log_mu"].append(log_mu)
                 seq["reward"].append(rewards)
                 seq["discount"].append(discounts)
                 seq["new_action"].append(new)
-                prev_action = np.where(new > 0, action.numpy(), prev_action)
+                prev_action = in_force.copy()
                 prev_reward = rewards.astype(np.float32)
                 first = dones.astype(np.float32)
                 prev_reward[dones] = 0.0
@@ -213,20 +231,24 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 replay.add(state=start_state[e], **fields)
             if replay.size >= int(hl.min_replay_unrolls):
                 for _ in range(int(hl.updates_per_unroll)):
-                    info = _update(agent, optimizer, replay.sample(batch, rng), gamma, entropy_cost, cfg.algorithm)
+                    sample = replay.sample(batch, rng)
+                    info = (_update(agent, optimizer, sample, gamma, entropy_cost, cfg.algorithm) if discrete
+                            else learner.update(optimizer, sample, gamma))
                     if not all(np.isfinite(v) for v in info.values()):
                         raise FloatingPointError(f"non-finite loss {info} at env step {counters['env_steps']}; "
                                                  f"the last good checkpoint is {checkpoint}")
                     counters["updates"] += 1
-            if counters["env_steps"] - last_log >= int(cfg.log_every) and returns:
+            if counters["env_steps"] - last_log >= int(cfg.log_every):
                 last_log = counters["env_steps"]
-                row = {"episode_return": float(np.mean(returns)), "episodes": counters["episodes"],
+                row = {"episodes": counters["episodes"],
                        "steps_per_second": (counters["env_steps"]) / (time.perf_counter() - start)}
+                if returns:
+                    row["episode_return"] = float(np.mean(returns))
+                    bar.set_postfix(ret=f"{row['episode_return']:.2f}")
+                    returns = []
                 if counters["updates"]:
                     row.update(info)
                 metrics.log(counters["env_steps"], row, learner_steps=counters["updates"] * batch * n)
-                bar.set_postfix(ret=f"{row['episode_return']:.2f}")
-                returns = []
             if time.monotonic() - last_save > float(hl.checkpoint_seconds):
                 save()
                 last_save = time.monotonic()
@@ -265,3 +287,69 @@ def _random_baseline(envs: VectorEnv, episodes: int, rng: np.random.Generator) -
         _, _, _, _, infos = envs.step(envs.random_actions(rng))
         out += [i["episode_return"] for i in infos if "episode_return" in i]
     return out[:episodes]
+
+
+class ContinuousLearner:
+    """SVG(0) + Retrace for continuous high-level actions (steerable, end_to_end), Appendix A.3/A.5.
+
+    The policy head gives a Gaussian (tanh-bounded mean, sigma clipped); sampled actions are
+    clipped to the controller's range. Q(h, a) is an MLP on the LSTM core's output,
+    regressed on Retrace targets from a target copy of the whole agent (refreshed every
+    `target_update_period` learner steps); the policy maximises Q_target(h, a(xi)) by the
+    reparameterised sample at steps where a new action was taken, with an entropy bonus.
+    """
+
+    def __init__(self, agent: HighLevelAgent, algorithm, controller, space):
+        self.agent = agent
+        self.target = copy.deepcopy(agent).requires_grad_(False)
+        self.low, self.high = float(space.low), float(space.high)
+        if controller.get("steering_range") is not None:
+            self.low, self.high = (float(v) for v in controller.steering_range)
+        self.sigma_clip = tuple(controller.get("sigma_clip", (0.05, 1.0)))
+        self.entropy_cost = float(controller.get("entropy_cost", algorithm.get("entropy_cost", 1e-5)))
+        self.lam = float(algorithm.get("retrace_lambda", 1.0))
+        self.period = int(algorithm.get("target_update_period", 100))
+        self.value_samples = int(algorithm.get("value_samples", 4))
+        self.steps = 0
+
+    def distribution(self, agent, policy_out):
+        mean, sigma = agent.gaussian(policy_out, self.low, self.high, self.sigma_clip)
+        return torch.distributions.Normal(mean, sigma)
+
+    def sample(self, policy_out: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        dist = self.distribution(self.agent, policy_out)
+        action = torch.clamp(dist.sample(), self.low, self.high)
+        return action.numpy().astype(np.float32), dist.log_prob(action).sum(-1).numpy()
+
+    def update(self, optimizer, b: dict, gamma: float) -> dict[str, float]:
+        state = _split_state(self.agent, b["state"])
+        args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
+        out, h, _ = self.agent(*args, state, image=b.get("image"), done=b["first"])
+        with torch.no_grad():
+            t_out, t_h, _ = self.target(*args, state, image=b.get("image"), done=b["first"])
+            t_dist = self.distribution(self.target, t_out)
+            q_taken = self.target.values(t_h[:-1], b["action"])
+            v_next = torch.stack([self.target.values(t_h[1:], torch.clamp(t_dist.sample()[1:], self.low, self.high))
+                                  for _ in range(self.value_samples)]).mean(0)
+            log_pi = self.distribution(self.target, t_out[:-1]).log_prob(b["action"]).sum(-1)
+            # held steps chose nothing: their trace is lambda (ratio 1)
+            ratio_log = (log_pi - b["log_mu"]) * b["new_action"]
+            traces = self.lam * torch.exp(torch.clamp(ratio_log, max=0.0))
+            targets = retrace_targets(b["reward"], b["discount"], q_taken, v_next, traces, gamma)
+        q = self.agent.values(h[:-1], b["action"])
+        critic_loss = 0.5 * ((q - targets) ** 2).mean()
+        dist = self.distribution(self.agent, out[:-1])
+        action = dist.rsample()
+        q_pi = self.target.values(h[:-1].detach(), action)
+        weight = b["new_action"] / b["new_action"].sum().clamp(min=1.0)
+        entropy = dist.entropy().sum(-1)
+        policy_loss = -((q_pi + self.entropy_cost * entropy) * weight).sum()
+        optimizer.zero_grad()
+        (critic_loss + policy_loss).backward()
+        torch.nn.utils.clip_grad_norm_(self.agent.parameters(), 40.0)
+        optimizer.step()
+        self.steps += 1
+        if self.steps % self.period == 0:
+            self.target.load_state_dict(self.agent.state_dict())
+        return {"critic_loss": critic_loss.item(), "policy_loss": policy_loss.item(),
+                "q": float(q.detach().mean()), "entropy": float((entropy.detach() * weight).sum())}
