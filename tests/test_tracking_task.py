@@ -84,6 +84,13 @@ def test_torso_on_the_ground_fails_but_hands_may_touch():
     data.qpos[root + 2] = 0.12                       # lay the pelvis on the floor
     _, _, discount, done = env.step(np.clip(logic.pose_to_actuation(logic.reference.joints[logic.t]), -1, 1))
     assert done and logic.failure and discount == 0.0
+    # hands and feet may touch the ground; every other body part may not
+    body_of = {mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, model.geom_bodyid[g]).split("/")[-1]: g
+               for g in range(model.ngeom) if model.geom_bodyid[g] > 0}
+    for name in ("lhand", "rfingers", "lthumb", "lfoot", "rtoes"):
+        assert not logic.contact_failure.nonfoot[body_of[name]], name
+    for name in ("root", "head", "lhumerus", "rtibia", "lwrist"):
+        assert logic.contact_failure.nonfoot[body_of[name]], name
     env.close()
 
 

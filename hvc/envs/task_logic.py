@@ -67,7 +67,7 @@ class WalkerPlacement:
             qpos[self.slide_adr] += xy
 
 
-class _ContactTermination:
+class ContactTermination:
     """Failure when a walker geom other than the feet touches the ground (the paper's rule)."""
 
     def __init__(self, model, nonfoot_ids, ground_ids):
@@ -111,7 +111,7 @@ class GoToTargetLogic(TaskLogic):
     def __init__(self, cfg, env):
         task, physics = env.task, env.physics
         self.placement = WalkerPlacement(task._walker, physics)
-        self.contact_failure = _ContactTermination(physics.model.ptr, task._walker_nonfoot_geomids,
+        self.contact_failure = ContactTermination(physics.model.ptr, task._walker_nonfoot_geomids,
                                                    task._ground_geomids)
         self.root = int(physics.bind(task._walker.root_body).element_id)
         self.site = int(physics.bind(task._target).element_id)
@@ -159,7 +159,7 @@ class CorridorLogic(TaskLogic):
         task, physics = env.task, env.physics
         walker = task._walker
         self.placement = WalkerPlacement(walker, physics)
-        self.contact_failure = _ContactTermination(physics.model.ptr, task._walker_nonfoot_geomids,
+        self.contact_failure = ContactTermination(physics.model.ptr, task._walker_nonfoot_geomids,
                                                    task._ground_geomids)
         self.root = int(physics.bind(walker.root_body).element_id)
         self.end_effectors = np.atleast_1d(physics.bind(list(walker.end_effectors)).element_id).astype(np.intp)
@@ -202,7 +202,7 @@ class MazeLogic(TaskLogic):
         task, physics = env.task, env.physics
         model = physics.model.ptr
         self.placement = WalkerPlacement(task._walker, physics)
-        self.contact_failure = _ContactTermination(model, task._walker_nonfoot_geomids,
+        self.contact_failure = ContactTermination(model, task._walker_nonfoot_geomids,
                                                    task._ground_geomids)
         arena = task._maze_arena
         targets = [(kind, t) for kind, group in enumerate(task._active_targets) for t in group]

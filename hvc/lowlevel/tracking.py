@@ -13,7 +13,7 @@ from typing import Any, Mapping
 import numpy as np
 from dm_control import mjcf
 
-from hvc.envs.task_logic import TaskLogic, _ContactTermination
+from hvc.envs.task_logic import TaskLogic, ContactTermination
 from hvc.lowlevel.reward import TrackingFeatures, TrackingReward
 from hvc.mocap.reference import Reference, find_cycle, from_clip, loop_cycle
 
@@ -54,7 +54,7 @@ class TrackingLogic(TaskLogic):
         allowed = {g for name in ALLOWED_CONTACT_BODIES
                    for g in (walker.mjcf_model.find("body", name).find_all("geom", immediate_children_only=True))}
         body_geoms = [g for g in walker.mjcf_model.find_all("geom") if g not in allowed]
-        self.contact_failure = _ContactTermination(model, physics.bind(body_geoms).element_id,
+        self.contact_failure = ContactTermination(model, physics.bind(body_geoms).element_id,
                                                    task._ground_geomids)
         free = mjcf.get_frame_freejoint(walker.mjcf_model)
         self.root_qpos = int(model.jnt_qposadr[physics.bind(free).element_id])
