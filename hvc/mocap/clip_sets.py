@@ -23,6 +23,7 @@ class ClipEntry:
     end: int | None = None       # exclusive; None: to the clip's end
     cyclic: bool = False
     steps: int | None = None     # cyclic entries: length of the looped reference
+    steer: bool = False          # cyclic entries: track it steered at random turning rates (steerable policy)
 
     @property
     def num_steps(self) -> int:
@@ -34,7 +35,7 @@ class ClipEntry:
 
     def as_dict(self) -> dict[str, Any]:
         return dict(id=self.id, behaviour=self.behaviour, start=self.start, end=self.end, cyclic=self.cyclic,
-                    steps=self.steps)
+                    steps=self.steps, steer=self.steer)
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,7 @@ def resolve(entries: Sequence[ClipEntry], mocap_file: str) -> list[ClipEntry]:
         end = lengths[e.id] if e.end is None else int(e.end)
         if not 0 <= e.start < end <= lengths[e.id]:
             raise ValueError(f"clip {e.id}: steps [{e.start}, {end}) outside its {lengths[e.id]} steps")
-        resolved.append(ClipEntry(e.id, e.behaviour, int(e.start), end, e.cyclic, e.steps))
+        resolved.append(ClipEntry(e.id, e.behaviour, int(e.start), end, e.cyclic, e.steps, e.steer))
     return resolved
 
 

@@ -1,0 +1,33 @@
+"""Tracking for the steerable policy (Sec. 2.2): a run cycle steered at random rates.
+
+Each episode draws a turning rate per gait cycle (uniform in `turn_rates`) and tracks the
+steered reference (hvc.mocap.steering); the policy sees the phase and the current
+cycle's rate, which the high level later sets (held one gait cycle).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from hvc.lowlevel.tracking import TrackingLogic
+from hvc.mocap.steering import steer_cycle
+
+
+class SteerableTrackingLogic(TrackingLogic):
+    observation_size = 2
+
+    def __init__(self, cfg, env):
+        super().__init__(cfg, env)
+        ref = self.reference  # the looped cycle: keep one repetition as the template
+        wrap = np.flatnonzero(np.diff(ref.phase) < 0)
+        self.cycle = ref.segment(0, int(wrap[0]) + 1 if len(wrap) else ref.num_steps)
+        self.turn_rates = tuple(float(r) for r in cfg.get("turn_rates", (-1.5, 1.5)))
+        self.cycles = int(cfg.get("cycle_repeats", 4))
+        self.rates = np.zeros(self.cycle.num_steps * self.cycles)
+
+    def reset(self, model, data, rng):
+        rates = rng.uniform(*self.turn_rates, self.cycles)
+        self.reference, self.rates = steer_cycle(self.cycle, rates)
+        super().reset(model, data, rng)
+
+    def observation(self, model, data):
+        return np.array([self.reference.phase[self.t], self.rates[self.t]], np.float32)

@@ -1,0 +1,66 @@
+"""Steered references for the steerable low-level policy (Sec. 2.2, Fig. 2A).
+
+One gait cycle is repeated; during each repetition the reference heading turns at a
+constant rate chosen for that cycle. The root path is re-integrated from the cycle's
+per-step displacements rotated by the accumulated heading, the orientation is turned
+by the same heading, the world-frame linear velocity rotated with it, and the turning
+rate added to the root's angular velocity (expressed in the root frame, like the free
+joint's qvel). Joint angles, joint velocities and the egocentric end effectors are
+heading-invariant and repeat unchanged.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from hvc.mocap.clips import root_heading
+from hvc.mocap.reference import Reference
+from hvc.rotations import quat_mul, yaw_quat
+
+
+def _rot_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _world_to_root(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    w, x, y, z = q
+    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return rot.T @ v
+
+
+def steer_cycle(cycle: Reference, rates: Sequence[float]) -> tuple[Reference, np.ndarray]:
+    """The cycle (one loop of a cyclic reference, length L) repeated len(rates) times,
+    turning at rates[k] rad/s during repetition k. Returns the reference and the per-step
+    turning rate (the policy's extra input)."""
+    length, dt = cycle.num_steps, cycle.dt
+    # straighten the cycle: its own heading drift over one cycle is removed, so rate 0 runs straight
+    drift_heading = root_heading(cycle.quaternion[[0, -1]])
+    straighten = -float(drift_heading[1] - drift_heading[0]) * length / max(length - 1, 1) / (length * dt)
+    steps = np.diff(cycle.position, axis=0, append=cycle.position[-1:] + (cycle.position[-1] - cycle.position[-2]))
+    steps[:, 2] = 0.0  # heights are taken from the cycle itself
+    position, quaternion, velocity, angular, per_step_rate = [], [], [], [], []
+    heading, xy = 0.0, cycle.position[0, :2].copy()
+    for rate in rates:
+        for i in range(length):
+            turn = _rot_z(heading)
+            q = quat_mul(yaw_quat(heading), cycle.quaternion[i])
+            position.append(np.array([xy[0], xy[1], cycle.position[i, 2]]))
+            quaternion.append(q)
+            v = turn @ cycle.velocity[i]
+            velocity.append(v)
+            angular.append(cycle.angular_velocity[i] + _world_to_root(q, np.array([0.0, 0.0, rate + straighten])))
+            per_step_rate.append(rate)
+            xy = xy + (turn @ steps[i])[:2]
+            heading += (rate + straighten) * dt
+    k = len(rates)
+    tile = lambda a: np.concatenate([a] * k)  # noqa: E731
+    ref = Reference(clip_id=cycle.clip_id, dt=dt, cyclic=True, joints=tile(cycle.joints),
+                    joints_velocity=tile(cycle.joints_velocity), position=np.asarray(position),
+                    quaternion=np.asarray(quaternion), velocity=np.asarray(velocity),
+                    angular_velocity=np.asarray(angular), end_effectors=tile(cycle.end_effectors),
+                    phase=np.tile(np.arange(length) / length, k))
+    return ref, np.asarray(per_step_rate)
