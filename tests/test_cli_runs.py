@@ -121,3 +121,17 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     second = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert second["counters"]["env_steps"] >= 160 > first["counters"]["env_steps"]
     assert second["counters"]["updates"] > first["counters"]["updates"]
+
+
+def test_metrics_logger_writes_csv_rows_and_tensorboard_events(tmp_path):
+    from hvc.runtime.metrics import MetricsLogger
+
+    with MetricsLogger(tmp_path / "metrics.csv", tensorboard=True) as metrics:
+        metrics.log(10, {"a": 1.5, "b": 2}, learner_steps=320)
+    with MetricsLogger(tmp_path / "metrics.csv") as metrics:  # a resumed run appends
+        metrics.log(20, {"a": 2.5})
+    frame = pd.read_csv(tmp_path / "metrics.csv")
+    assert frame.to_dict("list") == {"env_steps": [10, 10, 20], "learner_steps": [320, 320, 0],
+                                     "wall_time": frame.wall_time.tolist(), "key": ["a", "b", "a"],
+                                     "value": [1.5, 2.0, 2.5]}
+    assert list((tmp_path / "tb").glob("events.out.tfevents.*"))

@@ -121,7 +121,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     replay = UnrollReplay(int(cfg["replay_unrolls"]), int(cfg["unroll"]), obs_size, env.action_size)
     checkpoint = out_dir / "checkpoint.pt"
     counters = {"env_steps": 0, "episodes": 0}
-    metrics = MetricsLogger(out_dir / "metrics.csv")
+    metrics = MetricsLogger(out_dir / "metrics.csv", tensorboard=True)
     if checkpoint.exists():
         state = torch.load(checkpoint, weights_only=True)
         learner.load_state_dict(state["learner"])

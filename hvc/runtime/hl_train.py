@@ -158,7 +158,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         os.replace(tmp, checkpoint)
 
     gamma, entropy_cost = float(agent_cfg.gamma), float(cfg.algorithm.entropy_cost)
-    metrics = MetricsLogger(run_dir / "metrics.csv")
+    metrics = MetricsLogger(run_dir / "metrics.csv", tensorboard=True)
     E = envs.num_envs
     obs = envs.reset()
     lstm = agent.initial_state(E)

@@ -14,8 +14,16 @@ COLUMNS = ("env_steps", "learner_steps", "wall_time", "key", "value")
 
 
 class MetricsLogger:
-    def __init__(self, path: str | Path):
+    """Appends rows to `path`; with `tensorboard=True` also writes the same scalars as
+    TensorBoard events into `<dir>/tb/` (x-axis: env steps)."""
+
+    def __init__(self, path: str | Path, tensorboard: bool = False):
         self.path = Path(path)
+        self._tb = None
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._tb = SummaryWriter(str(self.path.parent / "tb"))
         new = not self.path.exists() or self.path.stat().st_size == 0
         self._file = open(self.path, "a", newline="")  # append: resumed runs continue the file
         self._writer = csv.writer(self._file)
@@ -28,10 +36,14 @@ class MetricsLogger:
         wall = round(time.perf_counter() - self._start, 3)
         for key, value in values.items():
             self._writer.writerow((int(env_steps), int(learner_steps), wall, key, float(value)))
+            if self._tb is not None:
+                self._tb.add_scalar(key, float(value), int(env_steps))
         self._file.flush()
 
     def close(self) -> None:
         self._file.close()
+        if self._tb is not None:
+            self._tb.close()
 
     def __enter__(self) -> "MetricsLogger":
         return self
