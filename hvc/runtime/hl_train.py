@@ -295,8 +295,9 @@ class ContinuousLearner:
     The policy head gives a Gaussian (tanh-bounded mean, sigma clipped); sampled actions are
     clipped to the controller's range. Q(h, a) is an MLP on the LSTM core's output,
     regressed on Retrace targets from a target copy of the whole agent (refreshed every
-    `target_update_period` learner steps); the policy maximises Q_target(h, a(xi)) by the
-    reparameterised sample at steps where a new action was taken, with an entropy bonus.
+    `target_update_period` learner steps); the policy maximises Q(h, a(xi)) through the
+    reparameterised sample (Q's weights held, so only the policy moves) at steps where a
+    new action was taken, with an entropy bonus.
     """
 
     def __init__(self, agent: HighLevelAgent, algorithm, controller, space):
@@ -340,7 +341,10 @@ class ContinuousLearner:
         critic_loss = 0.5 * ((q - targets) ** 2).mean()
         dist = self.distribution(self.agent, out[:-1])
         action = dist.rsample()
-        q_pi = self.target.values(h[:-1].detach(), action)
+        # SVG(0): the gradient of Q w.r.t. the action only; Q's weights and the state features are held
+        frozen = {k: v.detach() for k, v in self.agent.value.named_parameters()}
+        q_pi = torch.func.functional_call(self.agent.value, frozen,
+                                          (torch.cat([h[:-1].detach(), action], -1),)).squeeze(-1)
         weight = b["new_action"] / b["new_action"].sum().clamp(min=1.0)
         entropy = dist.entropy().sum(-1)
         policy_loss = -((q_pi + self.entropy_cost * entropy) * weight).sum()
