@@ -1,0 +1,94 @@
+"""Reference sequences for the switching policy (Sec. 2.2, Fig. 2B), cut automatically.
+
+The paper cut its clips by hand to begin and end at similar points of the gait cycle.
+Here `best_cut` finds, for a transition a -> b, the pair of steps whose poses match best
+(joint angles, root height and heading-free orientation), `splice` joins the two
+references there (b moved and turned so its root continues from a's, joint angles
+blended linearly over a few steps), and `markov_reference` chains behaviours with a
+Markov process over a graph of allowed transitions. The per-step behaviour index is the
+policy's 1-of-k input.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from hvc.mocap.clips import root_heading
+from hvc.mocap.reference import Reference
+from hvc.rotations import quat_mul, yaw_quat
+
+
+def _rot_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _heading_free(ref: Reference) -> np.ndarray:
+    heading = root_heading(ref.quaternion)
+    return np.array([quat_mul(yaw_quat(-h), q) for h, q in zip(heading, ref.quaternion)])
+
+
+def pose_distance(a: Reference, i: int, b: Reference, j: int) -> float:
+    """Mean absolute joint-angle difference + root height and heading-free tilt differences."""
+    qa, qb = _heading_free(a.segment(i, i + 1))[0], _heading_free(b.segment(j, j + 1))[0]
+    tilt = 1.0 - abs(float(qa @ qb))
+    return float(np.mean(np.abs(a.joints[i] - b.joints[j])) + abs(a.position[i, 2] - b.position[j, 2]) + tilt)
+
+
+def best_cut(a: Reference, b: Reference, min_a: int = 1, max_b: int | None = None) -> tuple[int, int, float]:
+    """(i, j, cost): leave a after step i (i >= min_a), enter b at step j (j < max_b)."""
+    max_b = b.num_steps - 1 if max_b is None else max_b
+    fa, fb = _heading_free(a), _heading_free(b)
+    joint = np.abs(a.joints[:, None, :] - b.joints[None, :, :]).mean(-1)
+    height = np.abs(a.position[:, None, 2] - b.position[None, :, 2])
+    tilt = 1.0 - np.abs(fa @ fb.T)
+    cost = joint + height + tilt
+    cost[:min_a, :] = np.inf
+    cost[:, max_b:] = np.inf
+    i, j = np.unravel_index(np.argmin(cost), cost.shape)
+    return int(i), int(j), float(cost[i, j])
+
+
+def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4) -> Reference:
+    """a[:i+1] then b[j+1:], b moved so its root continues a's path with a's heading at the cut."""
+    ha, hb = root_heading(a.quaternion[[i]])[0], root_heading(b.quaternion[[j]])[0]
+    turn = ha - hb
+    rot = _rot_z(turn)
+    tail = b.segment(j + 1)
+    offset = a.position[i] - rot @ b.position[j]
+    position = tail.position @ rot.T + offset
+    position[:, 2] = tail.position[:, 2]
+    quaternion = np.array([quat_mul(yaw_quat(turn), q) for q in tail.quaternion])
+    joints = tail.joints.copy()
+    k = min(blend, len(joints))
+    w = (np.arange(1, k + 1) / (k + 1))[:, None]
+    joints[:k] = (1 - w) * a.joints[i] + w * joints[:k]  # ease from a's last pose into b
+    cat = lambda x, y: np.concatenate([x, y])  # noqa: E731
+    head = a.segment(0, i + 1)
+    return Reference(clip_id=f"{a.clip_id}+{b.clip_id}", dt=a.dt, cyclic=False,
+                     joints=cat(head.joints, joints), joints_velocity=cat(head.joints_velocity, tail.joints_velocity),
+                     position=cat(head.position, position), quaternion=cat(head.quaternion, quaternion),
+                     velocity=cat(head.velocity, tail.velocity @ rot.T),
+                     angular_velocity=cat(head.angular_velocity, tail.angular_velocity),
+                     end_effectors=cat(head.end_effectors, tail.end_effectors),
+                     phase=np.linspace(0.0, 1.0, i + 1 + tail.num_steps))
+
+
+def markov_reference(references: Sequence[Reference], graph: Mapping[int, Sequence[int]], steps: int,
+                     rng: np.random.Generator, start: int | None = None, blend: int = 4,
+                     min_stay: int = 10) -> tuple[Reference, np.ndarray]:
+    """Chains behaviours by a Markov walk on `graph` (behaviour -> allowed next ones) until
+    `steps` steps; each transition cut by `best_cut` after at least `min_stay` steps in the
+    current behaviour. Returns the reference and the per-step behaviour index."""
+    current = int(rng.integers(len(references))) if start is None else int(start)
+    ref = references[current]
+    labels = np.full(ref.num_steps, current)
+    entered = 0
+    while ref.num_steps < steps:
+        nxt = int(rng.choice(list(graph[current])))
+        i, j, _ = best_cut(ref, references[nxt], min_a=min(entered + min_stay, ref.num_steps - 1))
+        spliced = splice(ref, i, references[nxt], j, blend)
+        labels = np.concatenate([labels[:i + 1], np.full(spliced.num_steps - i - 1, nxt)])
+        ref, current, entered = spliced, nxt, i + 1
+    return ref.segment(0, steps), labels[:steps]

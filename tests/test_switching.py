@@ -1,0 +1,48 @@
+"""Automatic cuts for the switching policy's reference sequences."""
+import numpy as np
+import pytest
+
+from hvc.mocap.clips import root_heading
+from hvc.mocap.source import SHARED_CLIPS
+from hvc.mocap.switching import best_cut, markov_reference, splice
+
+pytestmark = pytest.mark.skipif(not SHARED_CLIPS.is_dir(), reason=f"offline CMU clips not found at {SHARED_CLIPS}")
+
+
+@pytest.fixture(scope="module")
+def behaviours():
+    from hvc.config import compose
+    from hvc.lowlevel.tracking import build_reference
+    from hvc.mocap.clip_sets import entries_of, resolve
+    from hvc.mocap.source import find_mocap_file
+
+    mocap = str(find_mocap_file(None, "2019"))
+    return [build_reference(e.as_dict(), mocap) for e in resolve(entries_of(compose([]).clips), mocap)]
+
+
+def test_a_clip_cut_against_itself_matches_exactly(behaviours):
+    run = behaviours[1]
+    i, j, cost = best_cut(run, run, min_a=10)
+    assert cost == pytest.approx(0.0, abs=1e-9) and i >= 10
+
+
+def test_splice_continues_the_path_and_heading(behaviours):
+    run, left = behaviours[1], behaviours[2]
+    i, j, cost = best_cut(run, left, min_a=20)
+    joined = splice(run, i, left, j)
+    assert joined.num_steps == i + 1 + left.num_steps - j - 1
+    step = np.linalg.norm(np.diff(joined.position[:, :2], axis=0), axis=1)
+    assert step[i] < 3 * np.median(step)                       # no jump in the root path
+    heading = root_heading(joined.quaternion)
+    assert abs(heading[i + 1] - heading[i]) < 0.2               # nor in the heading
+    joint_jump = np.abs(joined.joints[i + 1] - joined.joints[i]).mean()
+    assert joint_jump <= cost + np.abs(np.diff(left.joints, axis=0)).mean(1).max()
+
+
+def test_markov_walk_follows_the_transition_graph(behaviours):
+    graph = {0: [1], 1: [2, 3, 0], 2: [1], 3: [1]}  # stand <-> run, run <-> turns
+    ref, labels = markov_reference(behaviours, graph, steps=300, rng=np.random.default_rng(0), start=0)
+    assert ref.num_steps == 300 == len(labels)
+    changes = [(a, b) for a, b in zip(labels[:-1], labels[1:]) if a != b]
+    assert changes and all(b in graph[a] for a, b in changes)
+    assert np.all(np.isfinite(ref.position))
