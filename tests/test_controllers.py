@@ -91,7 +91,52 @@ def test_end_to_end_passes_the_action_every_step(env):
     np.testing.assert_allclose(env.data.ctrl[env.layout.actuators], env.action_high)  # clipped
 
 
-def test_structured_controllers_say_what_they_need(env):
+def test_structured_controllers_say_what_they_need(env, tmp_path):
     for name in ("steerable", "switching"):
         with pytest.raises(ControllerUnavailable, match=f"controller={name} needs"):
-            build_controller({"name": name}, env)
+            build_controller({"name": name}, env, library=str(tmp_path / "missing.npz"))
+
+
+def _cyclic_expert(obs_size, n=12, cycle=4):
+    torch.manual_seed(0)
+    ref = _reference(n, 3)
+    ref = Reference(ref.clip_id, ref.dt, True, *(getattr(ref, f) for f in (
+        "joints", "joints_velocity", "position", "quaternion", "velocity", "angular_velocity", "end_effectors")),
+        np.tile(np.arange(cycle) / cycle, n // cycle))
+    return Expert({"id": ref.clip_id, "behaviour": "run"}, NumpyPolicy.from_torch(GaussianPolicy(obs_size, 56, [16], 0.1)),
+                  ref)
+
+
+def test_steerable_holds_a_rate_for_one_gait_cycle(env):
+    from hvc.controllers.structured import SteerableController
+
+    expert = _cyclic_expert(136 + 2)
+    controller = SteerableController(expert, (-1.5, 1.5))
+    wrapped = ControlledEnv(env, controller)
+    obs = wrapped.reset()
+    news = []
+    for step in range(8):
+        expected = expert.act(np.concatenate([obs["proprio"], [expert.reference.phase[step % 4], 1.5]]))
+        obs, _, _, done, info = wrapped.step(np.array([3.0]) if wrapped.needs_action else None)  # clipped to 1.5
+        np.testing.assert_allclose(env.data.ctrl[env.layout.actuators], np.clip(expected, -1, 1), atol=1e-6)
+        news.append(info["new_action"])
+    assert news == [True, False, False, False] * 2
+
+
+def test_switching_enters_a_behaviour_at_the_best_matching_pose(env):
+    from hvc.controllers.structured import SwitchingController
+
+    expert = _cyclic_expert(136 + 1 + 2)
+    behaviours = [_reference(6, 4), _reference(9, 5)]
+    controller = SwitchingController(expert, behaviours, hold_steps=3)
+    wrapped = ControlledEnv(env, controller)
+    obs = wrapped.reset()
+    joints = obs["proprio"][:56]
+    order = controller.actuator_order
+    entry = int(np.argmin(np.abs(behaviours[1].joints[:, order] - joints).mean(1)))
+    expected = expert.act(np.concatenate([obs["proprio"], [behaviours[1].phase[entry]], [0.0, 1.0]]))
+    wrapped.step(1)
+    np.testing.assert_allclose(env.data.ctrl[env.layout.actuators], np.clip(expected, -1, 1), atol=1e-6)
+    assert controller.current == 1 and controller.t == entry + 1
+    wrapped.step(None), wrapped.step(None)
+    assert wrapped.needs_action

@@ -46,3 +46,11 @@ def test_markov_walk_follows_the_transition_graph(behaviours):
     changes = [(a, b) for a, b in zip(labels[:-1], labels[1:]) if a != b]
     assert changes and all(b in graph[a] for a, b in changes)
     assert np.all(np.isfinite(ref.position))
+
+
+def test_spliced_references_keep_each_behaviours_time_input(behaviours):
+    stand, run = behaviours[0], behaviours[1]
+    i, j, _ = best_cut(stand, run, min_a=30)
+    joined = splice(stand, i, run, j)
+    np.testing.assert_allclose(joined.phase[:i + 1], stand.phase[:i + 1])
+    np.testing.assert_allclose(joined.phase[i + 1:], run.phase[j + 1:])

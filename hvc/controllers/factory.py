@@ -21,13 +21,20 @@ def build_controller(controller: Mapping[str, Any], env, library: str | None = N
         from hvc.controllers.end_to_end import EndToEndController
 
         return EndToEndController(env.action_low, env.action_high)
-    if name in ("steerable", "switching"):
-        raise ControllerUnavailable(
-            f"controller={name} needs the {name} low-level policy (one policy trained on "
-            f"{'a run cycle with random turning rates' if name == 'steerable' else 'a Markov chain over behaviours'}); "
-            f"it is not trained or shipped yet; allowed today: fragments, query, end_to_end")
     from hvc.lowlevel.library import ExpertLibrary
 
+    if name in ("steerable", "switching"):
+        try:
+            lib = ExpertLibrary.load(library_path(library, name))
+        except FileNotFoundError as error:
+            raise ControllerUnavailable(
+                f"controller={name} needs the {name} low-level policy (`hvc-run stage=lowlevel clips={name}`, "
+                f"then library=<its experts_{name}.npz>): {error}") from None
+        from hvc.controllers.structured import SteerableController, SwitchingController
+
+        if name == "steerable":
+            return SteerableController(lib.experts[0], controller.get("steering_range", (-1.5, 1.5)))
+        return SwitchingController(lib.experts[0], _behaviours(lib), int(controller.get("hold_steps", 20)))
     lib = ExpertLibrary.load(library_path(library, clip_set))
     if name == "fragments":
         from hvc.controllers.fragments import FragmentsController
@@ -38,3 +45,15 @@ def build_controller(controller: Mapping[str, Any], env, library: str | None = N
 
         return QueryController(lib, int(controller["fragment_len"]), int(controller["k_nearest"]))
     raise ValueError(f"controller={name!r}; allowed: steerable, switching, fragments, query, end_to_end")
+
+
+def _behaviours(lib) -> list:
+    """The switching policy's behaviour references, rebuilt from the entries it was trained on."""
+    from hvc.lowlevel.tracking import build_reference
+    from hvc.mocap.source import find_mocap_file
+
+    entries = lib.meta.get("switching_entries")
+    if not entries:
+        raise ControllerUnavailable("this switching library does not list its behaviours (switching_entries)")
+    mocap_file = str(find_mocap_file(None, "2019"))
+    return [build_reference(e, mocap_file) for e in entries]

@@ -39,7 +39,9 @@ class Layout:
 def layout_from_composer(env, task: Mapping[str, Any], body: Mapping[str, Any]) -> Layout:
     """Captures the composer env's current compiled model (call after env.reset())."""
     kind = task["kind"]
-    if kind == "tracking" and (task.get("clip") or {}).get("steer"):
+    if kind == "tracking" and (task.get("clip") or {}).get("switching"):
+        from hvc.lowlevel.switching_task import SwitchingTrackingLogic as logic_class
+    elif kind == "tracking" and (task.get("clip") or {}).get("steer"):
         from hvc.lowlevel.steerable import SteerableTrackingLogic as logic_class
     elif kind == "tracking":  # motion-capture tracking lives with the low level
         from hvc.lowlevel.tracking import TrackingLogic as logic_class

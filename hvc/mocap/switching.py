@@ -10,6 +10,7 @@ policy's 1-of-k input.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -55,7 +56,7 @@ def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4) -> Refere
     ha, hb = root_heading(a.quaternion[[i]])[0], root_heading(b.quaternion[[j]])[0]
     turn = ha - hb
     rot = _rot_z(turn)
-    tail = b.segment(j + 1)
+    tail = replace(b.segment(j + 1), phase=b.phase[j + 1:])  # keep b's own time input
     offset = a.position[i] - rot @ b.position[j]
     position = tail.position @ rot.T + offset
     position[:, 2] = tail.position[:, 2]
@@ -65,14 +66,19 @@ def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4) -> Refere
     w = (np.arange(1, k + 1) / (k + 1))[:, None]
     joints[:k] = (1 - w) * a.joints[i] + w * joints[:k]  # ease from a's last pose into b
     cat = lambda x, y: np.concatenate([x, y])  # noqa: E731
-    head = a.segment(0, i + 1)
+    head = _keep_phase(a, i + 1)
     return Reference(clip_id=f"{a.clip_id}+{b.clip_id}", dt=a.dt, cyclic=False,
                      joints=cat(head.joints, joints), joints_velocity=cat(head.joints_velocity, tail.joints_velocity),
                      position=cat(head.position, position), quaternion=cat(head.quaternion, quaternion),
                      velocity=cat(head.velocity, tail.velocity @ rot.T),
                      angular_velocity=cat(head.angular_velocity, tail.angular_velocity),
                      end_effectors=cat(head.end_effectors, tail.end_effectors),
-                     phase=np.linspace(0.0, 1.0, i + 1 + tail.num_steps))
+                     phase=cat(head.phase, tail.phase))  # each behaviour keeps its own time input
+
+
+def _keep_phase(ref: Reference, end: int) -> Reference:
+    """The first `end` steps with their phases as they are (segment() renumbers non-cyclic ones)."""
+    return replace(ref.segment(0, end), phase=ref.phase[:end])
 
 
 def markov_reference(references: Sequence[Reference], graph: Mapping[int, Sequence[int]], steps: int,

@@ -15,6 +15,7 @@ import time
 import traceback
 from pathlib import Path
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
@@ -50,7 +51,19 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     entries = resolve(entries_of(cfg.clips), str(mocap_file))
     cfg_ll = OmegaConf.to_container(cfg.lowlevel, resolve=True)
     jobs = []
-    for i, entry in enumerate(entries):
+    if cfg.clips.get("switching"):  # one policy over the whole set (the switching controller's)
+        from hvc.mocap.clip_sets import ClipEntry
+
+        spec = OmegaConf.to_container(cfg.clips.switching, resolve=True)
+        combined = ClipEntry(id="switching", behaviour="switching", steps=int(spec["steps"]))
+        out = expert_dir(run_dir, 0, combined)
+        out.mkdir(parents=True, exist_ok=True)
+        task, body, render = env_dicts(cfg, entries[0], tracking=True)
+        task["clip"] = {"switching": True, "entries": [e.as_dict() for e in entries], **spec}
+        if not (out / "result.json").exists():
+            jobs.append((combined, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed),
+                                         os.getpid())))
+    for i, entry in enumerate(entries if not cfg.clips.get("switching") else []):
         out = expert_dir(run_dir, i, entry)
         out.mkdir(parents=True, exist_ok=True)
         (out / "error.txt").unlink(missing_ok=True)
@@ -100,6 +113,8 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         signal.signal(signal.SIGTERM, previous)
     if failed:
         raise RuntimeError("; ".join(failed))
+    if cfg.clips.get("switching"):
+        entries = [combined]
     library = assemble_library(cfg, run_dir, entries, mocap_file)
     path = library.save(run_dir / f"experts_{cfg.clips.name}.npz")
     for e in library.experts:
@@ -127,12 +142,23 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path):
         policy = GaussianPolicy(obs_size, action_size, cfg.lowlevel.hidden, cfg.lowlevel.sigma)
         policy.load_state_dict(weights)
         tracking = cfg.task if cfg.task.kind == "tracking" else group_config("task", "tracking")
-        reference = build_reference(entry.as_dict(), str(mocap_file), int(tracking.cycle_repeats),
-                                    int(tracking.cycle_blend))
+        if entry.id == "switching":  # the switching policy: one Markov walk over the set stands for it
+            from hvc.mocap.switching import markov_reference
+
+            behaviours = [build_reference(e.as_dict(), str(mocap_file), int(tracking.cycle_repeats),
+                                          int(tracking.cycle_blend))
+                          for e in resolve(entries_of(cfg.clips), str(mocap_file))]
+            graph = {int(k): list(v) for k, v in cfg.clips.switching.graph.items()}
+            reference, _ = markov_reference(behaviours, graph, int(entry.steps), np.random.default_rng(0))
+        else:
+            reference = build_reference(entry.as_dict(), str(mocap_file), int(tracking.cycle_repeats),
+                                        int(tracking.cycle_blend))
         scores = json.loads((out / "result.json").read_text())
         steps.append(int(state["counters"]["env_steps"]))
         experts.append(Expert(entry.as_dict(), NumpyPolicy.from_torch(policy), reference, scores))
     meta = {"clip_set": str(cfg.clips.name), "body": str(cfg.body.name), "sigma": float(cfg.lowlevel.sigma),
+            **({"switching_entries": [e.as_dict() for e in resolve(entries_of(cfg.clips), str(mocap_file))]}
+               if cfg.clips.get("switching") else {}),
             "hidden": list(cfg.lowlevel.hidden), "control_timestep": float(cfg.task.control_timestep),
             "provenance": provenance(steps, {"mocap_file": str(mocap_file)})}
     return ExpertLibrary(experts, meta)

@@ -1,0 +1,82 @@
+"""Structured controllers (Sec. 2.2): the steerable and the switching policy.
+
+Steerable: the high level sets a turning rate in the steering range, held one gait cycle;
+the steerable expert runs the cycle with that rate as input. Switching: the high level
+picks one of k behaviours, held one gait cycle; on a change the switching expert enters
+the new behaviour at the step whose pose best matches the body's (as the training
+references were cut), and its 1-of-k input follows the choice.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from hvc.controllers.base import ActionSpace
+
+
+def _cycle_length(phase: np.ndarray) -> int:
+    wraps = np.flatnonzero(np.diff(phase) < 0)
+    return int(wraps[0]) + 1 if len(wraps) else len(phase)
+
+
+class SteerableController:
+    def __init__(self, expert, steering_range=(-1.5, 1.5)):
+        self.expert = expert
+        self.low, self.high = (float(v) for v in steering_range)
+        self.cycle = _cycle_length(expert.reference.phase)
+        self.phase = expert.reference.phase[:self.cycle]
+        self.action_space = ActionSpace(discrete=False, size=1, low=self.low, high=self.high)
+        self.rate, self.step = 0.0, self.cycle
+
+    def reset(self) -> None:
+        self.rate, self.step = 0.0, self.cycle
+
+    def needs_action(self) -> bool:
+        return self.step >= self.cycle
+
+    def set_action(self, action) -> None:
+        self.rate = float(np.clip(np.ravel(action)[0], self.low, self.high))
+        self.step = 0
+
+    def body_action(self, obs) -> np.ndarray:
+        t = self.step % self.cycle
+        self.step += 1
+        return self.expert.act(np.concatenate([obs["proprio"], [self.phase[t], self.rate]]).astype(np.float32))
+
+
+class SwitchingController:
+    def __init__(self, expert, behaviours, hold_steps: int):
+        from dm_control.locomotion.walkers.cmu_humanoid import _CMU_MOCAP_JOINTS
+
+        self.expert = expert
+        # proprioception lists joints in actuator order; references in mocap order
+        self.actuator_order = np.argsort(_CMU_MOCAP_JOINTS)
+        self.behaviours = behaviours  # references of the k behaviours (pose matching and time inputs)
+        self.hold = int(hold_steps)
+        self.action_space = ActionSpace(discrete=True, n=len(behaviours))
+        self.current, self.t, self.held = None, 0, self.hold
+
+    def reset(self) -> None:
+        self.current, self.t, self.held = None, 0, self.hold
+
+    def needs_action(self) -> bool:
+        return self.held >= self.hold
+
+    def set_action(self, action) -> None:
+        k = int(action)
+        if not 0 <= k < len(self.behaviours):
+            raise ValueError(f"behaviour {k} outside 0..{len(self.behaviours) - 1}")
+        if k != self.current:
+            self.current, self.t = k, None  # entry step chosen from the body's pose at the next step
+        self.held = 0
+
+    def body_action(self, obs) -> np.ndarray:
+        ref = self.behaviours[self.current]
+        if self.t is None:
+            joints = obs["proprio"][:ref.joints.shape[1]]  # joints_pos leads the proprioception
+            self.t = int(np.argmin(np.abs(ref.joints[:, self.actuator_order] - joints).mean(1)))
+        t = min(self.t, ref.num_steps - 1)
+        self.t = t + 1 if t + 1 < ref.num_steps else (0 if ref.cyclic else t)
+        self.held += 1
+        code = np.zeros(len(self.behaviours), np.float32)
+        code[self.current] = 1.0
+        return self.expert.act(np.concatenate([obs["proprio"], [ref.phase[t]], code]).astype(np.float32))

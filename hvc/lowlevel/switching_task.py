@@ -1,0 +1,33 @@
+"""Tracking for the switching policy (Sec. 2.2, Fig. 2B): one policy, k behaviours.
+
+Each episode a Markov walk over the clip set's transition graph chains the behaviours'
+references, cut where poses match best (hvc.mocap.switching); the policy sees the phase
+and a 1-of-k code of the behaviour being tracked, which the high level later chooses.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from hvc.lowlevel.tracking import TrackingLogic, build_reference
+from hvc.mocap.switching import markov_reference
+
+
+class SwitchingTrackingLogic(TrackingLogic):
+    def __init__(self, cfg, env):
+        spec = cfg["clip"]  # {"switching": True, "entries": [...], "graph": {...}, "steps": n}
+        self.behaviours = [build_reference(e, cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)),
+                                           int(cfg.get("cycle_blend", 4))) for e in spec["entries"]]
+        self.graph = {int(k): [int(v) for v in vs] for k, vs in spec["graph"].items()}
+        self.steps = int(spec.get("steps") or 300)
+        self.observation_size = 1 + len(self.behaviours)
+        self.labels = np.zeros(self.behaviours[0].num_steps, np.int64)
+        super().__init__(cfg, env, reference=self.behaviours[0])
+
+    def reset(self, model, data, rng):
+        self.reference, self.labels = markov_reference(self.behaviours, self.graph, self.steps, rng)
+        super().reset(model, data, rng)
+
+    def observation(self, model, data):
+        code = np.zeros(len(self.behaviours), np.float32)
+        code[self.labels[self.t]] = 1.0
+        return np.concatenate([[np.float32(self.reference.phase[self.t])], code]).astype(np.float32)
