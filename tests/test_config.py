@@ -105,3 +105,24 @@ def test_cli_help_lists_groups_and_cfg_prints_composed_config(tmp_path):
     shown = _hvc_run("--cfg", "job", "controller=fragments", "task=gaps", cwd=tmp_path)
     assert shown.returncode == 0
     assert "name: gaps" in shown.stdout and "name: fragments" in shown.stdout
+
+
+@pytest.mark.parametrize("sweep,expected", [("fragment_len", {"fragment_len": "1,3,10", "seed": "0,1,2"}),
+                                            ("fragment_count", None), ("behaviours", None), ("core_tasks", None),
+                                            ("rolling_ball", None)])
+def test_sweep_files_compose_with_their_grids(tmp_path, sweep, expected):
+    from pathlib import Path
+
+    sweeps = Path(__file__).resolve().parents[1] / "sweeps"
+    shown = subprocess.run([sys.executable, "-m", "hvc.cli", "--config-dir", str(sweeps), "--config-name", sweep,
+                            "--cfg", "hydra"], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert shown.returncode == 0, shown.stderr
+    import yaml
+
+    params = yaml.safe_load(shown.stdout)["hydra"]["sweeper"]["params"]
+    assert params and all("," in str(v) for v in params.values())
+    if expected:
+        assert {k: str(v) for k, v in params.items()} == expected
+    job = subprocess.run([sys.executable, "-m", "hvc.cli", "--config-dir", str(sweeps), "--config-name", sweep,
+                          "--cfg", "job"], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert job.returncode == 0 and "stage: train" in job.stdout
