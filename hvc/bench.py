@@ -4,7 +4,9 @@ Per task: the raw `mj_step` rate on the same compiled model (the ceiling, expres
 control steps/s), the hvc fast env's control steps/s with random actions including
 resets, dm_control composer's on the same task, and the mean reset time of each. Then
 64x64 camera frames/s on gaps with the default and the fast render settings, and the
-time of one low-level expert's action (numpy float32, hidden 256) against its 30 us goal.
+time of one low-level expert's action (numpy float32, hidden 256) against its 30 us goal,
+and for fragments on go_to_target and gaps the actor's env steps/s (env + experts + camera)
+and the V-trace learner's transitions/s at the task's Table A.1 sizes.
 Ratios, not absolute times, are the numbers to compare across machines.
 """
 from __future__ import annotations
@@ -132,6 +134,71 @@ def expert_inference_us(hidden: int, seconds: float) -> float:
     return 1e6 * (time.perf_counter() - t0) / n
 
 
+def _bench_library():
+    """The shipped default library, or random experts of the same shapes (throughput only)."""
+    import torch
+
+    from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
+    from hvc.lowlevel.library import Expert, ExpertLibrary, SHIPPED_DIR
+    from hvc.mocap.reference import Reference
+
+    shipped = SHIPPED_DIR / "experts_go_to_target.npz"
+    if shipped.exists():
+        return ExpertLibrary.load(shipped)
+    experts = []
+    for i, n in enumerate((102, 108, 43, 58)):  # the default set's lengths: 105 fragments at length 3
+        torch.manual_seed(i)
+        z = np.zeros
+        ref = Reference(f"CMU_{i}", 0.03, False, z((n, 56)), z((n, 56)), z((n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                        z((n, 3)), z((n, 3)), z((n, 4, 3)), np.linspace(0, 1, n))
+        experts.append(Expert({"id": f"CMU_{i}", "behaviour": str(i), "start": 0, "end": n},
+                              NumpyPolicy.from_torch(GaussianPolicy(137, 56, [256, 256], 0.1)), ref))
+    return ExpertLibrary(experts, {})
+
+
+def hl_throughput(task_name: str, seconds: float) -> tuple[float, float]:
+    """(actor env steps/s through the fragments controller, learner transitions/s of V-trace)."""
+    import torch
+
+    from hvc.agents.network import AgentSpec, HighLevelAgent
+    from hvc.controllers.base import ControlledEnv
+    from hvc.controllers.fragments import FragmentsController
+    from hvc.runtime.hl_train import Unrolls, _update
+
+    torch.set_num_threads(1)
+    cfg = compose([f"task={task_name}", "task.layout_pool=1", "task.init_from_clips=false"])
+    env = FastEnv.build(_plain(cfg, "task"), _plain(cfg, "body"), _plain(cfg, "render"), seed=0)
+    controlled = ControlledEnv(env, FragmentsController(_bench_library(), 3))
+    rng = np.random.default_rng(0)
+    controlled.reset()
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        done = controlled.step(int(rng.integers(controlled.action_space.n)) if controlled.needs_action else None)[3]
+        n += 1
+        if done:
+            controlled.reset()
+    actor_sps = n / (time.perf_counter() - t0)
+    agent_cfg = cfg.task.agent
+    vision = bool(cfg.task.vision)
+    spec = AgentSpec(env.layout.proprio.size, env.layout.logic.observation_size, controlled.action_space.n, True,
+                     int(agent_cfg.lstm_size), tuple(agent_cfg.value_mlp), vision)
+    env.close()
+    agent = HighLevelAgent(spec)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-4)
+    unroll, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
+    replay = Unrolls.allocate(batch * 2, unroll, spec.proprio_size, spec.task_size, vision, spec.lstm_size,
+                              spec.policy_lstm)
+    replay.size = replay.capacity
+    replay.action[:] = rng.integers(0, spec.action_size, replay.action.shape)
+    replay.new_action[:] = 1.0
+    updates, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds or updates < 2:
+        _update(agent, optimizer, replay.sample(batch, rng), 0.99, 0.01, cfg.algorithm)
+        updates += 1
+    learner_tps = updates * batch * unroll / (time.perf_counter() - t0)
+    return actor_sps, learner_tps
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
@@ -156,6 +223,9 @@ def main(argv=None) -> None:
         lines.append(f"bench task={name} ceiling_sps={ceiling:.0f} hvc_sps={sps:.0f} composer_sps={comp:.0f} "
                      f"hvc/ceiling={sps / ceiling:.2f} composer/ceiling={comp / ceiling:.2f} "
                      f"reset_ms={reset_ms:.2f} composer_reset_ms={comp_reset:.1f}")
+    for name in ("go_to_target", "gaps"):
+        actor, learner = hl_throughput(name, args.seconds)
+        lines.append(f"bench hl task={name} controller=fragments actor_sps={actor:.0f} learner_tps={learner:.0f}")
     us = expert_inference_us(256, args.seconds)
     lines.append(f"bench expert_inference hidden=256 us_per_step={us:.1f} goal_us=30 ratio={us / 30:.2f}")
     if not args.no_render:
