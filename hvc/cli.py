@@ -11,8 +11,12 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from hvc.config import CONF_DIR, ConfigError, check_group_overrides, validate
+from hvc.errors import HvcUserError
 
 log = logging.getLogger("hvc")
+
+
+USER_ERRORS = (FileNotFoundError, HvcUserError)
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
@@ -29,6 +33,15 @@ def _run(cfg: DictConfig) -> None:
     # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     log.info("stage=%s run dir %s", cfg.stage, run_dir)
+    try:
+        summary = _dispatch(cfg, run_dir)
+    except USER_ERRORS as error:  # a missing file or clip, an unavailable controller: one line, no traceback
+        print(f"hvc-run: error: {error}", file=sys.stderr)
+        sys.exit(2)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+
+
+def _dispatch(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.stage == "rollout":
         from hvc.runtime.rollout import run_rollout
 
@@ -49,7 +62,7 @@ def _run(cfg: DictConfig) -> None:
         from hvc.runtime.mocap_stages import STAGES
 
         summary = STAGES[cfg.stage](cfg, run_dir)
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
 
 
 def main() -> None:

@@ -5,8 +5,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 
-class ControllerUnavailable(RuntimeError):
-    """The controller's low-level policy does not exist yet (named in the message)."""
+from hvc.errors import ControllerUnavailable
 
 
 def library_path(library: str | None, clip_set: str) -> Path:

@@ -20,6 +20,7 @@ import numpy as np
 
 import hvc
 from hvc.agents.mlp import NumpyPolicy
+from hvc.errors import LibraryVersionError  # noqa: F401  (raised here, re-exported)
 from hvc.mocap.reference import Reference
 
 LIBRARY_VERSION = 1
@@ -27,9 +28,6 @@ REFERENCE_FIELDS = ("joints", "joints_velocity", "position", "quaternion", "velo
                     "end_effectors", "phase")
 SHIPPED_DIR = Path(__file__).resolve().parents[1] / "data"
 
-
-class LibraryVersionError(RuntimeError):
-    pass
 
 
 @dataclass

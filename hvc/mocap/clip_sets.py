@@ -64,13 +64,14 @@ def entries_of(clips_cfg: Mapping[str, Any]) -> list[ClipEntry]:
 
 def resolve(entries: Sequence[ClipEntry], mocap_file: str) -> list[ClipEntry]:
     """Checks every id exists in `mocap_file` and fills open-ended ranges from its lengths."""
+    from hvc.mocap.clips import ClipNotFoundError
     from hvc.mocap.source import clip_lengths
 
     lengths = clip_lengths(mocap_file)
     resolved = []
     for e in entries:
         if e.id not in lengths:
-            raise KeyError(f"clip {e.id} ({e.behaviour}) is not in {mocap_file}; it has {len(lengths)} clips"
+            raise ClipNotFoundError(f"clip {e.id} ({e.behaviour}) is not in {mocap_file}; it has {len(lengths)} clips"
                            + (f", e.g. {', '.join(sorted(lengths)[:5])}" if lengths else ""))
         end = lengths[e.id] if e.end is None else int(e.end)
         if not 0 <= e.start < end <= lengths[e.id]:

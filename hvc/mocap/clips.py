@@ -18,18 +18,13 @@ import numpy as np
 from dm_control.locomotion.mocap import loader as mocap_loader
 from dm_control.utils import transformations as tr
 
+from hvc.errors import ClipNotFoundError  # noqa: F401  (raised here, re-exported)
+
 #: ReferenceClip array fields; each is a `walker/<field>` entry of dm_control's Trajectory.
 CLIP_FIELDS: tuple[str, ...] = (
     "joints", "joints_velocity", "position", "quaternion", "velocity", "angular_velocity",
     "end_effectors", "appendages", "body_positions", "body_quaternions", "center_of_mass",
 )  # fmt: skip
-
-
-class ClipNotFoundError(KeyError):
-    """A clip id is not in the HDF5 file; the message names both (KeyError would quote it)."""
-
-    def __str__(self) -> str:
-        return str(self.args[0]) if self.args else ""
 
 
 @dataclasses.dataclass(frozen=True)
