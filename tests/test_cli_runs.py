@@ -1,6 +1,7 @@
 """`hvc-run` end to end on tiny budgets, as a user runs it."""
 import subprocess
 import sys
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -135,3 +136,23 @@ def test_metrics_logger_writes_csv_rows_and_tensorboard_events(tmp_path):
                                      "wall_time": frame.wall_time.tolist(), "key": ["a", "b", "a"],
                                      "value": [1.5, 2.0, 2.5]}
     assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+
+
+def test_recorded_episodes_feed_the_transition_analysis(tmp_path):
+    import numpy as np
+
+    path = _tiny_library(tmp_path / "lib.npz")
+    _run("total_steps=120", f"library={path}", "record_episodes=2", "task.init_from_clips=false", cwd=tmp_path)
+    [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
+    episodes = sorted((run_dir / "episodes").glob("episode_*.npz"))
+    assert len(episodes) == 2
+    with np.load(episodes[0]) as ep:
+        chosen = ep["hl_action"][ep["new_action"]]
+        assert len(ep["reward"]) == len(ep["hl_action"]) and len(chosen) >= 1
+        assert np.all((chosen >= 0) & (chosen < 5))  # 5 fragments in the tiny library at length 3
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
+    from fragment_transitions import plot, transition_counts
+
+    counts, table = transition_counts(run_dir)
+    assert counts.shape == (5, 5) and counts.sum() > 0 and len(table) == 5
+    assert plot(run_dir, tmp_path / "t.png").stat().st_size > 1000

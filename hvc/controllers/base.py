@@ -61,7 +61,8 @@ class ControlledEnv:
                 raise ValueError("the controller needs a new high-level action (needs_action is true)")
             self.controller.set_action(hl_action)
         self.obs, reward, discount, done = self.env.step(self.controller.body_action(self.obs))
-        return self.obs, reward, discount, done, {"new_action": new_action}
+        return self.obs, reward, discount, done, {"new_action": new_action,
+                                                  "hl_action": getattr(self.controller, "record", np.nan)}
 
     def close(self) -> None:
         self.env.close()

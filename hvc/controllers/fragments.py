@@ -21,10 +21,11 @@ class FragmentsController:
         self.fragments: list[Fragment] = fragments(entries, self.fragment_len)
         self.action_space = ActionSpace(discrete=True, n=len(self.fragments))
         self.current: Fragment | None = None
+        self.index = -1  # the running fragment's index (episode records)
         self.step_in_fragment = 0
 
     def reset(self) -> None:
-        self.current, self.step_in_fragment = None, 0
+        self.current, self.step_in_fragment, self.index = None, 0, -1
 
     def needs_action(self) -> bool:
         return self.current is None or self.step_in_fragment >= self.current.length
@@ -34,6 +35,7 @@ class FragmentsController:
         if not 0 <= index < len(self.fragments):
             raise ValueError(f"fragment {index} outside 0..{len(self.fragments) - 1}")
         self.current, self.step_in_fragment = self.fragments[index], 0
+        self.index = index
 
     def body_action(self, obs) -> np.ndarray:
         fragment = self.current
@@ -45,5 +47,10 @@ class FragmentsController:
 
     @property
     def fragment_index(self) -> tuple[int, int] | None:
-        """(clip, start) of the running fragment, for episode records."""
+        """(clip, start) of the running fragment."""
         return None if self.current is None else (self.current.clip, self.current.start)
+
+    @property
+    def record(self) -> float:
+        """What an episode record stores per step: the running fragment's index."""
+        return float(self.index)

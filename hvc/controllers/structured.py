@@ -37,6 +37,11 @@ class SteerableController:
         self.rate = float(np.clip(np.ravel(action)[0], self.low, self.high))
         self.step = 0
 
+    @property
+    def record(self) -> float:
+        """The turning rate in force (episode records)."""
+        return self.rate
+
     def body_action(self, obs) -> np.ndarray:
         t = self.step % self.cycle
         self.step += 1
@@ -60,6 +65,11 @@ class SwitchingController:
 
     def needs_action(self) -> bool:
         return self.held >= self.hold
+
+    @property
+    def record(self) -> float:
+        """The behaviour in force (episode records)."""
+        return -1.0 if self.current is None else float(self.current)
 
     def set_action(self, action) -> None:
         k = int(action)

@@ -55,6 +55,7 @@ def _worker(conn, index: int, task, body, render_settings, seed: int, controller
                 if driven:
                     obs, reward, discount, done, step_info = driven.step(payload if driven.needs_action else None)
                     info["new_action"] = step_info["new_action"]
+                    info["hl_action"] = step_info["hl_action"]
                 else:
                     obs, reward, discount, done = env.step(payload)
                 if done:

@@ -34,6 +34,7 @@ from hvc.algorithms.retrace import retrace_targets
 from hvc.algorithms.vtrace import vtrace_losses, vtrace_targets
 from hvc.envs.vector_env import VectorEnv
 from hvc.runtime.env_config import env_dicts
+from hvc.runtime.episodes import EpisodeRecorder, write_fragment_table
 from hvc.runtime.metrics import MetricsLogger
 
 log = logging.getLogger(__name__)
@@ -157,7 +158,15 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                     "torch_rng": torch.get_rng_state()}, tmp)
         os.replace(tmp, checkpoint)
 
-    gamma, entropy_cost = float(agent_cfg.gamma), float(cfg.algorithm.entropy_cost)
+    gamma, entropy_cost = float(agent_cfg.gamma), float(cfg.algorithm.get("entropy_cost", 0.01))
+    recorder = EpisodeRecorder(run_dir / "episodes", int(cfg.record_episodes))
+    if recorder.active and cfg.controller.name in ("fragments", "query"):
+        from hvc.controllers.factory import library_path
+        from hvc.lowlevel.library import ExpertLibrary
+
+        write_fragment_table(run_dir / "fragments.csv",
+                             ExpertLibrary.load(library_path(cfg.get("library"), str(cfg.clips.name))),
+                             int(cfg.fragment_len))
     metrics = MetricsLogger(run_dir / "metrics.csv", tensorboard=True)
     E = envs.num_envs
     obs = envs.reset()
@@ -198,7 +207,9 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                         action = action.numpy()
                     else:
                         action, log_mu = learner.sample(logits[0])
+                before = {k: v[0] for k, v in obs.items()}
                 obs, rewards, discounts, dones, infos = envs.step(action)
+                recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
                 new = np.array([float(i.get("new_action", False)) for i in infos], np.float32)
                 held = new.reshape(-1, *([1] * (action.ndim - 1))) > 0
                 in_force = np.where(held, action, prev_action)  # the action the controller is running

@@ -19,6 +19,7 @@ from hvc.envs.fast_env import FastEnv
 from hvc.envs.render import CameraRenderer
 from hvc.envs.vector_env import VectorEnv
 from hvc.runtime.env_config import env_dicts
+from hvc.runtime.episodes import EpisodeRecorder, write_fragment_table
 from hvc.runtime.metrics import MetricsLogger
 from hvc.runtime.video import write_video
 
@@ -44,10 +45,20 @@ def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
             log.info("rollout: random high-level actions through controller=%s (%s)", env.controller,
                      f"{env.action_space.n} choices" if env.action_space.discrete else f"{env.action_space.size}-D")
         hl_actions = 0
+        recorder = EpisodeRecorder(run_dir / "episodes", int(cfg.record_episodes))
+        if recorder.active and env.controller in ("fragments", "query"):
+            from hvc.controllers.factory import library_path
+            from hvc.lowlevel.library import ExpertLibrary
+
+            write_fragment_table(run_dir / "fragments.csv",
+                                 ExpertLibrary.load(library_path(cfg.get("library"), str(cfg.clips.name))),
+                                 int(cfg.fragment_len))
         try:
-            env.reset()
+            obs = env.reset()
             while steps < cfg.total_steps:
-                _, rewards, _, dones, infos = env.step(env.random_actions(rng))
+                before = {k: v[0] for k, v in obs.items()}
+                obs, rewards, _, dones, infos = env.step(env.random_actions(rng))
+                recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
                 before, steps = steps, steps + env.num_envs
                 bar.update(env.num_envs)
                 hl_actions += sum(bool(info.get("new_action")) for info in infos)

@@ -1,0 +1,57 @@
+"""Fragment transition density (the paper's Sec. 3.2 / Appendix C analysis).
+
+    python analysis/fragment_transitions.py outputs/<run dir> [out.png]
+
+Reads the run's recorded episodes (record_episodes=N) and fragments.csv, counts how often
+fragment i is followed by fragment j when the high level chooses, and draws the density
+with the clips' boundaries, plus how often each clip's fragments were chosen.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+
+def transition_counts(run_dir: Path) -> tuple[np.ndarray, pd.DataFrame]:
+    table = pd.read_csv(run_dir / "fragments.csv")
+    n = len(table)
+    counts = np.zeros((n, n))
+    for path in sorted((run_dir / "episodes").glob("episode_*.npz")):
+        with np.load(path) as ep:
+            chosen = ep["hl_action"][ep["new_action"]].astype(int)
+        chosen = chosen[chosen >= 0]
+        np.add.at(counts, (chosen[:-1], chosen[1:]), 1)
+    return counts, table
+
+
+def plot(run_dir: Path, out: Path) -> Path:
+    counts, table = transition_counts(run_dir)
+    density = counts / max(counts.sum(), 1)
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 5), gridspec_kw={"width_ratios": [3, 2]})
+    ax.imshow(np.log1p(density * 1e4), cmap="magma", origin="lower")
+    bounds = np.flatnonzero(np.diff(table["clip"].values)) + 0.5
+    for b in bounds:
+        ax.axhline(b, color="w", lw=0.5)
+        ax.axvline(b, color="w", lw=0.5)
+    ax.set_xlabel("next fragment")
+    ax.set_ylabel("fragment")
+    ax.set_title("fragment transitions (log density)")
+    usage = table.assign(chosen=counts.sum(0) + counts.sum(1)).groupby("behaviour", sort=False).chosen.sum()
+    bx.bar(usage.index, usage.values / max(usage.values.sum(), 1))
+    bx.set_title("share of choices per behaviour")
+    bx.tick_params(axis="x", rotation=45)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    return out
+
+
+if __name__ == "__main__":
+    run = Path(sys.argv[1])
+    print(plot(run, Path(sys.argv[2]) if len(sys.argv) > 2 else run / "fragment_transitions.png"))

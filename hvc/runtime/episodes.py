@@ -1,0 +1,50 @@
+"""Episode records for the analyses (fragment transitions, saliency): per step of env 0,
+the high-level action in force (fragment index, turning rate or behaviour), whether it
+was newly chosen, the reward and, for vision tasks, the frame the agent saw."""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+
+def write_fragment_table(path: Path, library, fragment_len: int) -> None:
+    """fragments.csv: index, clip, clip id, behaviour, start, length: what a fragment index means."""
+    from hvc.mocap.clip_sets import ClipEntry, fragments
+
+    entries = [ClipEntry(**e.entry) for e in library.experts]
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(("index", "clip", "clip_id", "behaviour", "start", "length"))
+        for i, frag in enumerate(fragments(entries, fragment_len)):
+            e = entries[frag.clip]
+            writer.writerow((i, frag.clip, e.id, e.behaviour, frag.start, frag.length))
+
+
+class EpisodeRecorder:
+    def __init__(self, out_dir: Path, max_episodes: int):
+        self.out_dir = Path(out_dir)
+        self.max_episodes = int(max_episodes)
+        self.saved = 0
+        self._steps: dict[str, list] = {"hl_action": [], "new_action": [], "reward": [], "image": []}
+
+    @property
+    def active(self) -> bool:
+        return self.saved < self.max_episodes
+
+    def add(self, obs_before: dict, reward: float, info: dict, done: bool) -> None:
+        """One step of env 0: the observation it acted on, then what the step returned."""
+        if not self.active:
+            return
+        self._steps["hl_action"].append(float(info.get("hl_action", np.nan)))
+        self._steps["new_action"].append(bool(info.get("new_action", True)))
+        self._steps["reward"].append(float(reward))
+        if "image" in obs_before:
+            self._steps["image"].append(np.asarray(obs_before["image"], np.uint8))
+        if done:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            arrays = {k: np.asarray(v) for k, v in self._steps.items() if v}
+            np.savez_compressed(self.out_dir / f"episode_{self.saved:04d}.npz", **arrays)
+            self.saved += 1
+            self._steps = {k: [] for k in self._steps}
