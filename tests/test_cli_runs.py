@@ -156,3 +156,22 @@ def test_recorded_episodes_feed_the_transition_analysis(tmp_path):
     counts, table = transition_counts(run_dir)
     assert counts.shape == (5, 5) and counts.sum() > 0 and len(table) == 5
     assert plot(run_dir, tmp_path / "t.png").stat().st_size > 1000
+
+
+def test_saliency_of_a_trained_agent_on_a_recorded_vision_episode(tmp_path):
+    import numpy as np
+
+    path = _tiny_library(tmp_path / "lib.npz")
+    _run("task=gaps", "stage=train", f"library={path}", "task.init_from_clips=false", "num_envs=1",
+         "total_steps=60", "record_episodes=1", "hl.random_episodes=0", "hl.min_replay_unrolls=2",
+         "algorithm.batch_size=2", "task.layout_pool=1", cwd=tmp_path)
+    [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
+    from saliency import load_agent, plot, saliency_maps
+
+    with np.load(run_dir / "episodes" / "episode_0000.npz") as data:
+        episode = {k: data[k] for k in data.files}
+    steps, maps = saliency_maps(load_agent(run_dir), episode)
+    assert len(steps) == int(episode["new_action"].sum()) and maps.shape[1:] == (64, 64)
+    assert np.all((maps >= 0) & (maps <= 1)) and maps.max() == 1.0
+    assert plot(run_dir, 0, tmp_path / "s.png").stat().st_size > 1000

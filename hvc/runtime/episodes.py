@@ -1,6 +1,7 @@
 """Episode records for the analyses (fragment transitions, saliency): per step of env 0,
 the high-level action in force (fragment index, turning rate or behaviour), whether it
-was newly chosen, the reward and, for vision tasks, the frame the agent saw."""
+was newly chosen, the reward, the proprioception and task input and, for vision tasks,
+the frame the agent saw: enough to replay the agent's LSTM over the episode."""
 from __future__ import annotations
 
 import csv
@@ -27,7 +28,8 @@ class EpisodeRecorder:
         self.out_dir = Path(out_dir)
         self.max_episodes = int(max_episodes)
         self.saved = 0
-        self._steps: dict[str, list] = {"hl_action": [], "new_action": [], "reward": [], "image": []}
+        self._steps: dict[str, list] = {"hl_action": [], "new_action": [], "reward": [], "image": [],
+                                        "proprio": [], "task": []}
 
     @property
     def active(self) -> bool:
@@ -40,6 +42,8 @@ class EpisodeRecorder:
         self._steps["hl_action"].append(float(info.get("hl_action", np.nan)))
         self._steps["new_action"].append(bool(info.get("new_action", True)))
         self._steps["reward"].append(float(reward))
+        self._steps["proprio"].append(np.asarray(obs_before["proprio"], np.float32))
+        self._steps["task"].append(np.asarray(obs_before["task"], np.float32))
         if "image" in obs_before:
             self._steps["image"].append(np.asarray(obs_before["image"], np.uint8))
         if done:

@@ -153,6 +153,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     def save() -> None:
         tmp = checkpoint.with_suffix(".tmp")
         torch.save({"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "counters": counters,
+                    "spec": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(spec).items()},
                     **({"target_agent": learner.target.state_dict()} if learner is not None else {}),
                     "replay_position": replay.position, "rng": json.dumps(rng.bit_generator.state),
                     "torch_rng": torch.get_rng_state()}, tmp)
