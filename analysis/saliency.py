@@ -36,7 +36,6 @@ def saliency_maps(agent: HighLevelAgent, episode: dict, percentile: float = 99.0
     if not agent.spec.discrete:
         raise ValueError("saliency of log pi(a|h) is implemented for discrete controllers")
     images = torch.from_numpy(episode["image"]).float().requires_grad_(True)
-    T = images.shape[0]
     actions = torch.from_numpy(episode["hl_action"].astype(np.int64)).clamp(min=0)
     prev_action = torch.cat([torch.zeros(1, dtype=torch.long), actions[:-1]])
     rewards = torch.from_numpy(episode["reward"].astype(np.float32))
