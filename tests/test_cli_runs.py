@@ -101,7 +101,7 @@ def test_main_job_drives_fragments_of_a_library(tmp_path):
     assert summary["hl_actions"] >= 60 // 3  # a new fragment at least every 3 steps
 
 
-@pytest.mark.parametrize("task,extra", [("go_to_target", []), ("gaps", []),
+@pytest.mark.parametrize("task,extra", [("go_to_target", []), ("gaps", []), ("go_to_target", ["controller=query"]),
                                         ("go_to_target", ["body=rolling_ball", "controller=end_to_end",
                                                           "task.time_limit=1.0"])])
 def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
@@ -114,7 +114,7 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     _run("total_steps=80", *common, cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     metrics = pd.read_csv(run_dir / "metrics.csv")
-    losses = {"critic_loss", "policy_loss"} if extra else {"value_loss", "pg_loss"}
+    losses = {"critic_loss", "policy_loss"} if extra else {"value_loss", "pg_loss"}  # continuous / discrete
     assert {"random_return", "episode_return"} | losses <= set(metrics.key)
     assert metrics.learner_steps.max() > 0
     first = torch.load(run_dir / "checkpoint.pt", weights_only=True)

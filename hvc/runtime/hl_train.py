@@ -56,6 +56,7 @@ class Unrolls:
     discount: np.ndarray     # [U, N]
     new_action: np.ndarray   # [U, N]
     state: np.ndarray        # [U, 4, H] LSTM state at the unroll's start (core h, c; policy h, c)
+    query: np.ndarray | None = None  # [U, N, A] query controller: the query in force (action = selected key)
     size: int = 0
     position: int = 0
 
@@ -86,7 +87,7 @@ class Unrolls:
         idx = rng.integers(0, self.size, batch)
         out = {}
         for name in ("proprio", "task", "image", "prev_reward", "prev_action", "first", "action", "log_mu",
-                     "reward", "discount", "new_action"):
+                     "reward", "discount", "new_action", "query"):
             array = getattr(self, name)
             if array is not None:
                 out[name] = torch.from_numpy(np.swapaxes(array[idx], 0, 1).copy())
@@ -108,9 +109,6 @@ def _pack_state(state: tuple[torch.Tensor, ...], hidden: int) -> np.ndarray:
 
 
 def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
-    if cfg.controller.name == "query":
-        raise NotImplementedError("high-level training of controller=query (Wolpertinger) is not implemented yet; "
-                                  "fragments and switching train with V-trace, end_to_end and steerable with SVG(0)")
     torch.set_num_threads(1)
     hl, agent_cfg = cfg.hl, cfg.task.agent
     rng = np.random.default_rng(cfg.seed)
@@ -130,13 +128,26 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                      lstm_size=int(agent_cfg.lstm_size), value_mlp=tuple(agent_cfg.value_mlp), vision=vision,
                      critic_takes_action=not discrete)
     agent = HighLevelAgent(spec)
-    learner = None if discrete else ContinuousLearner(agent, cfg.algorithm, cfg.controller, space)
+    if cfg.controller.name == "query":
+        from hvc.controllers.factory import library_path
+        from hvc.controllers.query import QueryController
+        from hvc.lowlevel.library import ExpertLibrary
+
+        lib = ExpertLibrary.load(library_path(cfg.get("library"), str(cfg.clips.name)))
+        learner = QueryLearner(agent, cfg.algorithm, cfg.controller, space,
+                               QueryController(lib, int(cfg.controller.fragment_len), int(cfg.controller.k_nearest)))
+    else:
+        learner = None if discrete else ContinuousLearner(agent, cfg.algorithm, cfg.controller, space)
+    query = isinstance(learner, QueryLearner)
     optimizer = torch.optim.Adam(agent.parameters(), lr=float(cfg.algorithm.learning_rate))
     n, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
     capacity = max(batch, int(agent_cfg.replay_size) // n)
     hidden = max(spec.lstm_size, spec.policy_lstm)
     replay = Unrolls.allocate(capacity, n, spec.proprio_size, spec.task_size, vision, spec.lstm_size,
                               spec.policy_lstm, None if discrete else spec.action_size)
+    if query:
+        replay.query = np.zeros_like(replay.action)
+    prev_query = np.zeros((cfg.num_envs, spec.action_size), np.float32) if query else None
     counters = {"env_steps": 0, "updates": 0, "episodes": 0}
     checkpoint = run_dir / "checkpoint.pt"
     if checkpoint.exists():
@@ -185,7 +196,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
             obs = envs.reset()
         while counters["env_steps"] < int(cfg.total_steps):
             seq = {k: [] for k in ("proprio", "task", "image", "prev_reward", "prev_action", "first", "action",
-                                   "log_mu", "reward", "discount", "new_action")}
+                                   "log_mu", "reward", "discount", "new_action", "query")}
             start_state = _pack_state(lstm, hidden)
             for _ in range(n):
                 seq["proprio"].append(obs["proprio"])
@@ -196,7 +207,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 seq["prev_action"].append(prev_action.copy())
                 seq["first"].append(first.copy())
                 with torch.no_grad():
-                    logits, _, lstm = agent(
+                    logits, h_step, lstm = agent(
                         torch.from_numpy(obs["proprio"][None]).float(), torch.from_numpy(obs["task"][None]).float(),
                         torch.from_numpy(prev_reward[None]), torch.from_numpy(prev_action[None]), lstm,
                         image=torch.from_numpy(obs["image"][None]) if vision else None,
@@ -206,14 +217,19 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                         action = dist.sample()
                         log_mu = dist.log_prob(action).numpy()
                         action = action.numpy()
+                    elif query:
+                        send, query_action, action, log_mu = learner.act(logits[0], h_step[0])
                     else:
                         action, log_mu = learner.sample(logits[0])
                 before = {k: v[0] for k, v in obs.items()}
-                obs, rewards, discounts, dones, infos = envs.step(action)
+                obs, rewards, discounts, dones, infos = envs.step(send if query else action)
                 recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
                 new = np.array([float(i.get("new_action", False)) for i in infos], np.float32)
                 held = new.reshape(-1, *([1] * (action.ndim - 1))) > 0
                 in_force = np.where(held, action, prev_action)  # the action the controller is running
+                if query:
+                    prev_query = np.where(held, query_action, prev_query)
+                    seq["query"].append(prev_query.copy())
                 seq["action"].append(in_force)
                 seq["log_mu"].append(log_mu)
                 seq["reward"].append(rewards)
@@ -239,7 +255,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 if vision:
                     fields["image"] = np.stack([s[e] for s in seq["image"]] + [obs["image"][e]])
                 fields.update({k: np.stack([s[e] for s in seq[k]]) for k in
-                               ("action", "log_mu", "reward", "discount", "new_action")})
+                               ("action", "log_mu", "reward", "discount", "new_action") + (("query",) if query else ())})
                 replay.add(state=start_state[e], **fields)
             if replay.size >= int(hl.min_replay_unrolls):
                 for _ in range(int(hl.updates_per_unroll)):
@@ -369,3 +385,67 @@ class ContinuousLearner:
             self.target.load_state_dict(self.agent.state_dict())
         return {"critic_loss": critic_loss.item(), "policy_loss": policy_loss.item(),
                 "q": float(q.detach().mean()), "entropy": float((entropy.detach() * weight).sum())}
+
+
+class QueryLearner(ContinuousLearner):
+    """Wolpertinger-style query selection (Appendix A.4).
+
+    The policy emits a Gaussian query in fragment-key space; the k nearest keys are scored
+    by Q(h, key) and one is chosen with p ~ exp(Q / T). Q is trained with 1-step targets
+    r + gamma E_{a ~ pi(.|h')} Q_target(h', a) on both the query and the selected key of each
+    replayed step (one Q for both kinds of action, as the paper found most stable); the
+    policy follows SVG(0) through Q at steps where a new fragment was chosen.
+    """
+
+    def __init__(self, agent, algorithm, controller, space, query_controller):
+        super().__init__(agent, algorithm, controller, space)
+        self.selector = query_controller
+        self.keys = torch.from_numpy(query_controller.keys)
+        self.temperature = float(controller.get("temperature", 1.0))
+        self.rng = np.random.default_rng(0)
+
+    @torch.no_grad()
+    def act(self, policy_out: torch.Tensor, h: torch.Tensor):
+        """(fragment index to run, query, selected key, log mu of the query) per env."""
+        dist = self.distribution(self.agent, policy_out)
+        queries = torch.clamp(dist.sample(), self.low, self.high)
+        log_mu = dist.log_prob(queries).sum(-1).numpy()
+        indices = []
+        for e in range(queries.shape[0]):
+            candidates = self.selector.nearest(queries[e].numpy())
+            keys = self.keys[candidates]
+            q = self.agent.values(h[e].expand(len(candidates), -1), keys)
+            p = torch.softmax(q / self.temperature, 0).numpy().astype(np.float64)
+            indices.append(int(candidates[self.rng.choice(len(candidates), p=p / p.sum())]))
+        indices = np.asarray(indices)
+        return indices, queries.numpy().astype(np.float32), self.keys[indices].numpy(), log_mu
+
+    def update(self, optimizer, b: dict, gamma: float) -> dict[str, float]:
+        state = _split_state(self.agent, b["state"])
+        args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
+        out, h, _ = self.agent(*args, state, image=b.get("image"), done=b["first"])
+        with torch.no_grad():
+            t_out, t_h, _ = self.target(*args, state, image=b.get("image"), done=b["first"])
+            t_dist = self.distribution(self.target, t_out[1:])
+            v_next = torch.stack([self.target.values(t_h[1:], torch.clamp(t_dist.sample(), self.low, self.high))
+                                  for _ in range(self.value_samples)]).mean(0)
+            targets = b["reward"] + gamma * b["discount"] * v_next
+        q_query = self.agent.values(h[:-1], b["query"])
+        q_selected = self.agent.values(h[:-1], b["action"])
+        critic_loss = 0.5 * (((q_query - targets) ** 2).mean() + ((q_selected - targets) ** 2).mean())
+        dist = self.distribution(self.agent, out[:-1])
+        frozen = {k: v.detach() for k, v in self.agent.value.named_parameters()}
+        q_pi = torch.func.functional_call(self.agent.value, frozen,
+                                          (torch.cat([h[:-1].detach(), dist.rsample()], -1),)).squeeze(-1)
+        weight = b["new_action"] / b["new_action"].sum().clamp(min=1.0)
+        entropy = dist.entropy().sum(-1)
+        policy_loss = -((q_pi + self.entropy_cost * entropy) * weight).sum()
+        optimizer.zero_grad()
+        (critic_loss + policy_loss).backward()
+        torch.nn.utils.clip_grad_norm_(self.agent.parameters(), 40.0)
+        optimizer.step()
+        self.steps += 1
+        if self.steps % self.period == 0:
+            self.target.load_state_dict(self.agent.state_dict())
+        return {"critic_loss": critic_loss.item(), "policy_loss": policy_loss.item(),
+                "q": float(q_selected.detach().mean()), "entropy": float((entropy.detach() * weight).sum())}
