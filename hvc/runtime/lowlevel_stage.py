@@ -160,5 +160,15 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path):
             **({"switching_entries": [e.as_dict() for e in resolve(entries_of(cfg.clips), str(mocap_file))]}
                if cfg.clips.get("switching") else {}),
             "hidden": list(cfg.lowlevel.hidden), "control_timestep": float(cfg.task.control_timestep),
-            "provenance": provenance(steps, {"mocap_file": str(mocap_file)})}
+            "provenance": provenance(steps, {"mocap_file": str(mocap_file), "training_command": _training_command(run_dir)})}
     return ExpertLibrary(experts, meta)
+
+
+def _training_command(run_dir: Path) -> str:
+    """The command that started the run (Hydra's record in the run dir), not a later resume's."""
+    overrides = run_dir / ".hydra" / "overrides.yaml"
+    if not overrides.exists():
+        return ""
+    import yaml
+
+    return " ".join(["hvc-run", *yaml.safe_load(overrides.read_text())])
