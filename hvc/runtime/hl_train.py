@@ -367,6 +367,12 @@ class ContinuousLearner:
             targets = retrace_targets(b["reward"], b["discount"], q_taken, v_next, traces, gamma)
         q = self.agent.values(h[:-1], b["action"])
         critic_loss = 0.5 * ((q - targets) ** 2).mean()
+        return self.step(optimizer, critic_loss, out, h, b, q)
+
+    def step(self, optimizer, critic_loss: torch.Tensor, out: torch.Tensor, h: torch.Tensor, b: dict,
+             q: torch.Tensor) -> dict[str, float]:
+        """Adds the SVG(0) policy loss to `critic_loss`, takes one optimiser step and refreshes
+        the target agent on schedule."""
         dist = self.distribution(self.agent, out[:-1])
         action = dist.rsample()
         # SVG(0): the gradient of Q w.r.t. the action only; Q's weights and the state features are held
@@ -433,19 +439,4 @@ class QueryLearner(ContinuousLearner):
         q_query = self.agent.values(h[:-1], b["query"])
         q_selected = self.agent.values(h[:-1], b["action"])
         critic_loss = 0.5 * (((q_query - targets) ** 2).mean() + ((q_selected - targets) ** 2).mean())
-        dist = self.distribution(self.agent, out[:-1])
-        frozen = {k: v.detach() for k, v in self.agent.value.named_parameters()}
-        q_pi = torch.func.functional_call(self.agent.value, frozen,
-                                          (torch.cat([h[:-1].detach(), dist.rsample()], -1),)).squeeze(-1)
-        weight = b["new_action"] / b["new_action"].sum().clamp(min=1.0)
-        entropy = dist.entropy().sum(-1)
-        policy_loss = -((q_pi + self.entropy_cost * entropy) * weight).sum()
-        optimizer.zero_grad()
-        (critic_loss + policy_loss).backward()
-        torch.nn.utils.clip_grad_norm_(self.agent.parameters(), 40.0)
-        optimizer.step()
-        self.steps += 1
-        if self.steps % self.period == 0:
-            self.target.load_state_dict(self.agent.state_dict())
-        return {"critic_loss": critic_loss.item(), "policy_loss": policy_loss.item(),
-                "q": float(q_selected.detach().mean()), "entropy": float((entropy.detach() * weight).sum())}
+        return self.step(optimizer, critic_loss, out, h, b, q_selected)
