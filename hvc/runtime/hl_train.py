@@ -345,17 +345,24 @@ class ContinuousLearner:
         mean, sigma = agent.gaussian(policy_out, self.low, self.high, self.sigma_clip)
         return torch.distributions.Normal(mean, sigma)
 
+    def replay_unrolls(self, b: dict) -> tuple[torch.Tensor, ...]:
+        """The online agent (with gradients) and the target agent (without) over the sampled
+        unrolls from their stored LSTM states: (out, h, target out, target h)."""
+        state = _split_state(self.agent, b["state"])
+        args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
+        out, h, _ = self.agent(*args, state, image=b.get("image"), done=b["first"])
+        with torch.no_grad():
+            t_out, t_h, _ = self.target(*args, state, image=b.get("image"), done=b["first"])
+        return out, h, t_out, t_h
+
     def sample(self, policy_out: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         dist = self.distribution(self.agent, policy_out)
         action = torch.clamp(dist.sample(), self.low, self.high)
         return action.numpy().astype(np.float32), dist.log_prob(action).sum(-1).numpy()
 
     def update(self, optimizer, b: dict, gamma: float) -> dict[str, float]:
-        state = _split_state(self.agent, b["state"])
-        args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
-        out, h, _ = self.agent(*args, state, image=b.get("image"), done=b["first"])
+        out, h, t_out, t_h = self.replay_unrolls(b)
         with torch.no_grad():
-            t_out, t_h, _ = self.target(*args, state, image=b.get("image"), done=b["first"])
             t_dist = self.distribution(self.target, t_out)
             q_taken = self.target.values(t_h[:-1], b["action"])
             v_next = torch.stack([self.target.values(t_h[1:], torch.clamp(t_dist.sample()[1:], self.low, self.high))
@@ -427,11 +434,8 @@ class QueryLearner(ContinuousLearner):
         return indices, queries.numpy().astype(np.float32), self.keys[indices].numpy(), log_mu
 
     def update(self, optimizer, b: dict, gamma: float) -> dict[str, float]:
-        state = _split_state(self.agent, b["state"])
-        args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
-        out, h, _ = self.agent(*args, state, image=b.get("image"), done=b["first"])
+        out, h, t_out, t_h = self.replay_unrolls(b)
         with torch.no_grad():
-            t_out, t_h, _ = self.target(*args, state, image=b.get("image"), done=b["first"])
             t_dist = self.distribution(self.target, t_out[1:])
             v_next = torch.stack([self.target.values(t_h[1:], torch.clamp(t_dist.sample(), self.low, self.high))
                                   for _ in range(self.value_samples)]).mean(0)
