@@ -175,3 +175,24 @@ def test_saliency_of_a_trained_agent_on_a_recorded_vision_episode(tmp_path):
     assert len(steps) == int(episode["new_action"].sum()) and maps.shape[1:] == (64, 64)
     assert np.all((maps >= 0) & (maps <= 1)) and maps.max() == 1.0
     assert plot(run_dir, 0, tmp_path / "s.png").stat().st_size > 1000
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+@pytest.mark.parametrize("clips, line", [("steerable", "steer clip=CMU_009_06 commanded_rate=+1.50"),
+                                         ("switching", "switch clip=switching transitions_completed=")])
+def test_structured_policy_trains_ships_and_evaluates(tmp_path, clips, line):
+    import re
+
+    tiny = ["lowlevel.bc_steps=10", "lowlevel.bc_rollouts=1", "lowlevel.min_replay_unrolls=2",
+            "lowlevel.batch_size=2", "lowlevel.eval_episodes=1", "lowlevel.hidden=[16]", "lowlevel.critic_hidden=[16]"]
+    _run("stage=lowlevel", f"clips={clips}", "total_steps=60", *tiny, "hydra.run.dir=ll", cwd=tmp_path)
+    library = tmp_path / "ll" / f"experts_{clips}.npz"
+    out = _run("stage=evaluate", f"clips={clips}", f"library={library}", "episodes=7", cwd=tmp_path).stdout
+    assert line in out
+    if clips == "steerable":  # every commanded rate of the range, each with an achieved rate
+        rates = re.findall(r"commanded_rate=([-+.\d]+) achieved_rate=([-+.\dna]+)", out)
+        assert [float(c) for c, _ in rates] == [-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5]
+    else:
+        attempted = int(re.search(r"of (\d+)", out).group(1))
+        assert attempted > 0  # the walks switch behaviours within the episodes

@@ -56,3 +56,67 @@ def evaluate(env: FastEnv, act: Callable[[dict, object], np.ndarray], episodes: 
 
 def evaluate_open_loop(env: FastEnv, episodes: int) -> dict[str, float]:
     return evaluate(env, open_loop_action, episodes, prefix="openloop_")
+
+
+def steering_response(env: FastEnv, act: Callable[[dict, object], np.ndarray], rates, episodes_per_rate: int,
+                      settle_steps: int = 10) -> list[dict[str, float]]:
+    """Commanded vs achieved turning rate of the steerable policy (Sec. 2.2 evaluation).
+
+    Each commanded rate is held for every cycle of the episode; the achieved rate is the
+    slope of the body's unwrapped heading after `settle_steps` (a linear fit spans the gait's
+    own sway). Episodes too short after settling (late random starts, early falls) give no
+    rate but still count for completion.
+    """
+    from hvc.mocap.clips import root_heading
+
+    logic = env.layout.logic
+    rows = []
+    try:
+        for rate in rates:
+            logic.held_rate = float(rate)
+            achieved, completion, fell = [], [], []
+            for _ in range(episodes_per_rate):
+                obs = env.reset()
+                quats = []
+                while True:
+                    obs, _, _, done = env.step(act(obs, logic))
+                    quats.append(env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7].copy())
+                    if done:
+                        break
+                heading = root_heading(np.asarray(quats))[settle_steps:]
+                if len(heading) >= 2 * settle_steps:
+                    achieved.append(float(np.polyfit(np.arange(len(heading)) * env.control_timestep, heading, 1)[0]))
+                completion.append(logic.completion)
+                fell.append(logic.failure)
+            rows.append({"commanded_rate": float(rate),
+                         "achieved_rate": float(np.mean(achieved)) if achieved else float("nan"),
+                         "completion": float(np.mean(completion)), "fall_rate": float(np.mean(fell))})
+    finally:
+        logic.held_rate = None
+    return rows
+
+
+def switching_transitions(env: FastEnv, act: Callable[[dict, object], np.ndarray], episodes: int,
+                          hold_steps: int = 20) -> dict[str, float]:
+    """Behaviour switches of the switching policy completed without falling (Sec. 2.2).
+
+    A switch of the reference's Markov walk is attempted when the body reaches its step;
+    it is completed when the body then keeps going for `hold_steps` (one gait cycle) or
+    until the walk ends, without a fall.
+    """
+    logic = env.layout.logic
+    attempted = completed = 0
+    for _ in range(episodes):
+        obs = env.reset()
+        labels, start = logic.labels.copy(), logic.start
+        while True:
+            obs, _, _, done = env.step(act(obs, logic))
+            if done:
+                break
+        end, fell = logic.t, logic.failure
+        for switch in np.flatnonzero(np.diff(labels)) + 1:
+            if start < switch <= end:
+                attempted += 1
+                completed += int(switch + hold_steps <= end or not fell)
+    return {"transitions_attempted": float(attempted),
+            "transitions_completed": completed / attempted if attempted else float("nan")}

@@ -23,9 +23,11 @@ class SteerableTrackingLogic(TrackingLogic):
         self.turn_rates = tuple(float(r) for r in cfg.get("turn_rates", (-1.5, 1.5)))
         self.cycles = int(cfg.get("cycle_repeats", 4))
         self.rates = np.zeros(self.cycle.num_steps * self.cycles)
+        self.held_rate: float | None = None  # evaluation: one commanded rate for every cycle
 
     def reset(self, model, data, rng):
-        rates = rng.uniform(*self.turn_rates, self.cycles)
+        rates = (rng.uniform(*self.turn_rates, self.cycles) if self.held_rate is None
+                 else np.full(self.cycles, self.held_rate))
         self.reference, self.rates = steer_cycle(self.cycle, rates)
         super().reset(model, data, rng)
 

@@ -13,19 +13,59 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from hvc.lowlevel.evaluation import evaluate, evaluate_open_loop, policy_observation
+from hvc.lowlevel.evaluation import (evaluate, evaluate_open_loop, policy_observation, steering_response,
+                                     switching_transitions)
 from hvc.lowlevel.library import ExpertLibrary, shipped_library
 from hvc.runtime.env_config import env_dicts
 from hvc.runtime.metrics import MetricsLogger
 
 
-def expert_env(cfg: DictConfig, expert):
+STEERING_RATES = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5)  # rad/s, the steerable policy's training range
+STEERING_CYCLES = 8  # gait cycles per steering episode: long enough to fit a heading slope
+
+
+def expert_env(cfg: DictConfig, expert, library: ExpertLibrary):
+    """The tracking env of one expert: its clip, a steered cycle, or the switching walks."""
     from hvc.envs.fast_env import FastEnv
     from hvc.mocap.clip_sets import ClipEntry
 
     task, body, render = env_dicts(cfg, ClipEntry(**expert.entry), tracking=True, with_mocap=False)
-    task["reference"] = expert.reference
+    if expert.entry["id"] == "switching":
+        from hvc.mocap.source import find_mocap_file
+
+        if "switching" not in library.meta:
+            raise ValueError("this switching library does not record its transition graph (meta 'switching'); "
+                             "reassemble it with `hvc-run stage=lowlevel clips=switching resume=<run dir>`")
+        task["clip"] = {"switching": True, "entries": library.meta["switching_entries"], **library.meta["switching"]}
+        task["mocap_file"] = str(find_mocap_file(cfg.mocap_file, str(cfg.body.get("model_version", "2019"))))
+    else:
+        task["reference"] = expert.reference
+    if expert.entry.get("steer"):
+        task["cycle_repeats"] = STEERING_CYCLES
     return FastEnv.build(task, body, render, seed=cfg.seed, render=False)
+
+
+def structured_scores(cfg: DictConfig, env, expert, act, metrics: MetricsLogger) -> dict[str, float]:
+    """The steerable policy's turning-rate response and the switching policy's completed
+    transitions (Sec. 2.2); nothing for a single-clip expert."""
+    clip = expert.entry["id"]
+    if expert.entry.get("steer"):
+        per_rate = max(1, int(cfg.episodes) // len(STEERING_RATES))
+        rows = steering_response(env, act, STEERING_RATES, per_rate)
+        for row in rows:
+            metrics.log(0, {f"achieved_rate/{clip}/{row['commanded_rate']:+.1f}": row["achieved_rate"],
+                            f"completion/{clip}/{row['commanded_rate']:+.1f}": row["completion"]})
+            print(f"steer clip={clip} commanded_rate={row['commanded_rate']:+.2f} "
+                  f"achieved_rate={row['achieved_rate']:+.2f} completion={row['completion']:.2f} "
+                  f"fall_rate={row['fall_rate']:.2f}")
+        error = [abs(r["achieved_rate"] - r["commanded_rate"]) for r in rows if np.isfinite(r["achieved_rate"])]
+        return {"steering_rate_error": float(np.mean(error)) if error else float("nan")}
+    if clip == "switching":
+        scores = switching_transitions(env, act, int(cfg.episodes))
+        print(f"switch clip={clip} transitions_completed={scores['transitions_completed']:.2f} "
+              f"of {scores['transitions_attempted']:.0f}")
+        return scores
+    return {}
 
 
 def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
@@ -35,10 +75,12 @@ def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
     results = {}
     with MetricsLogger(run_dir / "metrics.csv") as metrics:
         for expert in library.experts:
-            env = expert_env(cfg, expert)
-            scores = evaluate(env, lambda obs, logic, e=expert: e.act(policy_observation(obs)), cfg.episodes)
+            env = expert_env(cfg, expert, library)
+            act = lambda obs, logic, e=expert: e.act(policy_observation(obs))  # noqa: E731
+            scores = evaluate(env, act, cfg.episodes)
             scores.update(evaluate_open_loop(env, cfg.episodes))
             clip = expert.entry["id"]
+            scores.update(structured_scores(cfg, env, expert, act, metrics))
             metrics.log(0, {f"{k}/{clip}": v for k, v in scores.items()})
             results[clip] = scores
             print(f"eval clip={clip} completion={scores['completion']:.2f} reward={scores['reward']:.2f} "

@@ -186,6 +186,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     prev_reward, first = np.zeros(E, np.float32), np.ones(E, np.float32)
     prev_action = np.zeros(E, np.int64) if discrete else np.zeros((E, spec.action_size), np.float32)
     returns: list[float] = []
+    update_credit = 0.0
     start, last_save, last_log = time.perf_counter(), time.monotonic(), counters["env_steps"]
     bar = tqdm(total=int(cfg.total_steps), initial=counters["env_steps"], desc="hl train", unit="step",
                disable=None, mininterval=2.0)
@@ -258,7 +259,9 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                                ("action", "log_mu", "reward", "discount", "new_action") + (("query",) if query else ())})
                 replay.add(state=start_state[e], **fields)
             if replay.size >= int(hl.min_replay_unrolls):
-                for _ in range(int(hl.updates_per_unroll)):
+                update_credit += float(hl.updates_per_unroll) * E  # per unroll added; fractions accumulate
+                while update_credit >= 1.0:
+                    update_credit -= 1.0
                     sample = replay.sample(batch, rng)
                     info = (_update(agent, optimizer, sample, gamma, entropy_cost, cfg.algorithm) if discrete
                             else learner.update(optimizer, sample, gamma))

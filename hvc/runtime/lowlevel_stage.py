@@ -157,7 +157,8 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path):
         steps.append(int(state["counters"]["env_steps"]))
         experts.append(Expert(entry.as_dict(), NumpyPolicy.from_torch(policy), reference, scores))
     meta = {"clip_set": str(cfg.clips.name), "body": str(cfg.body.name), "sigma": float(cfg.lowlevel.sigma),
-            **({"switching_entries": [e.as_dict() for e in resolve(entries_of(cfg.clips), str(mocap_file))]}
+            **({"switching_entries": [e.as_dict() for e in resolve(entries_of(cfg.clips), str(mocap_file))],
+                "switching": OmegaConf.to_container(cfg.clips.switching, resolve=True)}
                if cfg.clips.get("switching") else {}),
             "hidden": list(cfg.lowlevel.hidden), "control_timestep": float(cfg.task.control_timestep),
             "provenance": provenance(steps, {"mocap_file": str(mocap_file), "training_command": _training_command(run_dir)})}
