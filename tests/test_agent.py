@@ -37,3 +37,45 @@ def test_vision_and_continuous_heads():
     assert mean.shape == (T, B, 1) and torch.all(mean.abs() <= 1.5)
     assert torch.all((sigma >= 0.1) & (sigma <= 1.0))
     assert agent.values(h, mean).shape == (T, B)
+
+
+def test_continuous_policy_stays_steerable_under_a_critic_that_prefers_a_bound():
+    """A critic that grows with the action pushes the mean to the bound; the tanh must not
+    saturate there (its gradient would vanish for good) and sigma keeps a gradient at its floor."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from omegaconf import OmegaConf
+
+    from hvc.runtime.hl_train import ContinuousLearner
+
+    torch.manual_seed(0)
+    spec = AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
+                     value_mlp=(16, 1), critic_takes_action=True)
+    agent = HighLevelAgent(spec)
+    learner = ContinuousLearner(agent, OmegaConf.create({"target_update_period": 10**6}),
+                                OmegaConf.create({"sigma_clip": [0.1, 1.0], "entropy_cost": 0.0}),
+                                SimpleNamespace(low=-1.0, high=1.0))
+    agent.value = torch.nn.Linear(16 + 2, 1)  # Q(h, a) = 5 * sum(a): always "more action"
+    with torch.no_grad():
+        agent.value.weight.zero_()
+        agent.value.weight[0, -2:] = 5.0
+        agent.value.bias.zero_()
+    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-2)
+    T, B = 3, 8
+    batch = {"proprio": torch.randn(T + 1, B, 3), "task": torch.zeros(T + 1, B, 0),
+             "prev_reward": torch.zeros(T + 1, B), "prev_action": torch.zeros(T + 1, B, 2),
+             "first": torch.zeros(T + 1, B), "new_action": torch.ones(T, B)}
+    for _ in range(300):
+        out, h, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
+                          agent.initial_state(B), done=batch["first"])
+        learner.step(optimizer, torch.zeros(()), out, h, batch, torch.zeros(T, B))
+    out, _, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
+                      agent.initial_state(B), done=batch["first"])
+    mean, _ = agent.gaussian(out, -1.0, 1.0)
+    assert mean.min() > 0.9  # the policy did follow the critic to the bound
+    assert out.chunk(2, -1)[0].abs().max() < 3.0  # without saturating its tanh (tanh(3) = 0.995)
+    sigma_raw = torch.full((1,), -30.0, requires_grad=True)  # deep below the floor
+    _, sigma = agent.gaussian(torch.cat([torch.zeros(1), sigma_raw]), -1.0, 1.0)
+    sigma.sum().backward()
+    assert np.isclose(float(sigma), 0.1) and sigma_raw.grad.abs() > 0

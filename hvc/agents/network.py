@@ -114,9 +114,12 @@ class HighLevelAgent(nn.Module):
         return self.value(inputs).squeeze(-1)
 
     def gaussian(self, policy_output: torch.Tensor, low: float, high: float, sigma_clip=(0.1, 1.0)):
-        """Steering-style Gaussian: tanh-squashed mean scaled to [low, high], sigma clipped."""
+        """Steering-style Gaussian: tanh-squashed mean scaled to [low, high], sigma bounded to
+        `sigma_clip` by a sigmoid rather than a clamp, so that a sigma at its floor still has a
+        gradient (a clamped one stays at the floor for good once it gets there)."""
         mean_raw, sigma_raw = policy_output.chunk(2, -1)
         scale, centre = (high - low) / 2, (high + low) / 2
         mean = centre + scale * torch.tanh(mean_raw)
-        sigma = torch.clamp(nn.functional.softplus(sigma_raw), *sigma_clip)
+        floor, ceiling = sigma_clip
+        sigma = floor + (ceiling - floor) * torch.sigmoid(sigma_raw)
         return mean, sigma

@@ -320,6 +320,9 @@ def _random_baseline(envs: VectorEnv, episodes: int, rng: np.random.Generator) -
     return out[:episodes]
 
 
+MEAN_RAW_LIMIT = 2.0  # |pre-tanh mean| beyond which the policy loss pulls it back (tanh(2) = 0.96)
+
+
 class ContinuousLearner:
     """SVG(0) + Retrace for continuous high-level actions (steerable, end_to_end), Appendix A.3/A.5.
 
@@ -384,14 +387,20 @@ class ContinuousLearner:
         """Adds the SVG(0) policy loss to `critic_loss`, takes one optimiser step and refreshes
         the target agent on schedule."""
         dist = self.distribution(self.agent, out[:-1])
-        action = dist.rsample()
+        # Q is only ever trained on actions inside the range (actors clip them): a sample outside
+        # it is clipped too, so Q's extrapolation cannot drag the mean past the bounds
+        action = torch.clamp(dist.rsample(), self.low, self.high)
         # SVG(0): the gradient of Q w.r.t. the action only; Q's weights and the state features are held
         frozen = {k: v.detach() for k, v in self.agent.value.named_parameters()}
         q_pi = torch.func.functional_call(self.agent.value, frozen,
                                           (torch.cat([h[:-1].detach(), action], -1),)).squeeze(-1)
         weight = b["new_action"] / b["new_action"].sum().clamp(min=1.0)
         entropy = dist.entropy().sum(-1)
-        policy_loss = -((q_pi + self.entropy_cost * entropy) * weight).sum()
+        # keeps the mean's tanh out of saturation, where its gradient vanishes and a policy
+        # pinned to a bound could never follow a critic that later changes its mind
+        mean_raw = out[:-1].chunk(2, -1)[0]
+        saturation = (torch.relu(mean_raw.abs() - MEAN_RAW_LIMIT) ** 2).sum(-1)
+        policy_loss = -((q_pi + self.entropy_cost * entropy - saturation) * weight).sum()
         optimizer.zero_grad()
         (critic_loss + policy_loss).backward()
         torch.nn.utils.clip_grad_norm_(self.agent.parameters(), 40.0)
