@@ -16,19 +16,22 @@ def _run(*args, cwd):
 
 
 def test_default_main_job_writes_the_run_directory(tmp_path):
-    _run("total_steps=120", "log_every=20", "seed=4", cwd=tmp_path)
+    import torch
+
+    _run("total_steps=120", "log_every=20", "seed=4", "hl.random_episodes=1", "hl.min_replay_unrolls=4", cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     metrics = pd.read_csv(run_dir / "metrics.csv")
     assert list(metrics.columns) == ["env_steps", "learner_steps", "wall_time", "key", "value"]
-    assert {"episode_return", "episode_length", "steps_per_second"} <= set(metrics.key)
-    assert metrics.env_steps.max() == 120
+    assert {"random_return", "steps_per_second", "value_loss"} <= set(metrics.key)  # it trains
+    assert metrics.env_steps.max() == 120 and metrics.learner_steps.max() > 0
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["counters"]["env_steps"] == 120
     resolved = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
     assert resolved["seed"] == 4 and resolved["task"]["name"] == "go_to_target"
     assert resolved["controller"]["fragment_len"] == 3  # interpolations resolved
 
 
 def test_multirun_sweeps_fragment_len_into_one_sweep_dir(tmp_path):
-    _run("-m", "fragment_len=1,3,10", "total_steps=30", cwd=tmp_path)
+    _run("-m", "stage=rollout", "fragment_len=1,3,10", "total_steps=30", cwd=tmp_path)
     [sweep] = list((tmp_path / "outputs" / "sweeps").glob("*/*"))
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
     assert len(jobs) == 3
@@ -39,7 +42,8 @@ def test_multirun_sweeps_fragment_len_into_one_sweep_dir(tmp_path):
 
 @pytest.mark.parametrize("task", ["gaps", "heterogeneous_forage"])
 def test_video_is_written_when_asked(tmp_path, task):
-    _run(f"task={task}", "task.layout_pool=1", "total_steps=20", "video=true", "video_steps=12", cwd=tmp_path)
+    _run("stage=rollout", f"task={task}", "task.layout_pool=1", "total_steps=20", "video=true", "video_steps=12",
+         cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     videos = list(run_dir.glob("rollout.*"))
     assert videos and videos[0].stat().st_size > 1000
@@ -49,7 +53,7 @@ def test_video_is_written_when_asked(tmp_path, task):
 
 
 def test_rolling_ball_end_to_end_with_two_env_workers(tmp_path):
-    _run("body=rolling_ball", "controller=end_to_end", "num_envs=2", "total_steps=40", cwd=tmp_path)
+    _run("stage=rollout", "body=rolling_ball", "controller=end_to_end", "num_envs=2", "total_steps=40", cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     assert "end_to_end" in run_dir.name
     assert pd.read_csv(run_dir / "metrics.csv").env_steps.max() == 40
@@ -63,7 +67,7 @@ def test_mocap_stages_end_to_end(tmp_path):
     assert sum(line.startswith("clip id=CMU_") for line in info) == 4
     openloop = _run("stage=openloop", "episodes=3", "clip=left_turn", cwd=tmp_path).stdout
     assert "openloop clip=CMU_016_41" in openloop and "completion=" in openloop
-    _run("task=tracking", "clip=right_turn", "total_steps=60", cwd=tmp_path)
+    _run("stage=rollout", "task=tracking", "clip=right_turn", "total_steps=60", cwd=tmp_path)
     playback = _run("stage=playback", "clip=CMU_016_24", cwd=tmp_path).stdout
     assert "playback clip=CMU_016_24 steps=83" in playback  # a clip outside the set: all of it
     videos = list((tmp_path / "outputs").rglob("playback_CMU_016_24.mp4"))
@@ -95,7 +99,8 @@ def test_main_job_drives_fragments_of_a_library(tmp_path):
     import json
 
     path = _tiny_library(tmp_path / "lib.npz")
-    _run("total_steps=60", f"library={path}", "fragment_len=3", "task.init_from_clips=false", cwd=tmp_path)
+    _run("stage=rollout", "total_steps=60", f"library={path}", "fragment_len=3", "task.init_from_clips=false",
+         cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["hl_actions"] >= 60 // 3  # a new fragment at least every 3 steps
@@ -142,7 +147,8 @@ def test_recorded_episodes_feed_the_transition_analysis(tmp_path):
     import numpy as np
 
     path = _tiny_library(tmp_path / "lib.npz")
-    _run("total_steps=120", f"library={path}", "record_episodes=2", "task.init_from_clips=false", cwd=tmp_path)
+    _run("stage=rollout", "total_steps=120", f"library={path}", "record_episodes=2", "task.init_from_clips=false",
+         cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     episodes = sorted((run_dir / "episodes").glob("episode_*.npz"))
     assert len(episodes) == 2

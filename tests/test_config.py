@@ -19,7 +19,8 @@ def test_groups_have_the_options_the_paper_needs():
 
 @pytest.mark.parametrize("task,controller,body", list(itertools.product(TASKS, CONTROLLERS, BODIES)))
 def test_every_combination_composes_or_fails_in_one_line(task, controller, body):
-    overrides = [f"task={task}", f"controller={controller}", f"body={body}"]
+    overrides = [f"task={task}", f"controller={controller}", f"body={body}",
+                 *(["stage=rollout"] if task == "tracking" else [])]  # stage=train takes high-level tasks
     humanoid_needed = controller != "end_to_end" or task == "tracking"
     should_fail = humanoid_needed and body == "rolling_ball"
     if should_fail:
@@ -89,6 +90,8 @@ def _hvc_run(*args, cwd):
     (["fragment_len=0"], "fragment_len"),
     (["task=nowhere"], "nowhere"),
     (["stage=dance"], "dance"),
+    (["task=tracking"], "stage=lowlevel"),
+    (["hl.updates_per_unroll=0"], "hl.updates_per_unroll=0"),
 ])
 def test_cli_rejects_bad_values_with_one_line_before_work(tmp_path, args, needle):
     result = _hvc_run(*args, cwd=tmp_path)
