@@ -79,3 +79,23 @@ def test_continuous_policy_stays_steerable_under_a_critic_that_prefers_a_bound()
     _, sigma = agent.gaussian(torch.cat([torch.zeros(1), sigma_raw]), -1.0, 1.0)
     sigma.sum().backward()
     assert np.isclose(float(sigma), 0.1) and sigma_raw.grad.abs() > 0
+
+
+def test_running_normalizer_matches_the_statistics_of_all_inputs_seen():
+    import numpy as np
+
+    from hvc.agents.network import RunningNormalizer
+
+    rng = np.random.default_rng(0)
+    batches = [rng.normal([3.0, -40.0], [0.5, 20.0], size=(n, 2)) for n in (1, 7, 30)]
+    norm = RunningNormalizer(2)
+    identity = torch.tensor([[0.5, -2.0]])
+    torch.testing.assert_close(norm(identity), identity)  # nothing seen yet: inputs pass unchanged
+    for batch in batches:
+        norm.update(torch.from_numpy(batch).float())
+    seen = np.concatenate(batches)
+    np.testing.assert_allclose(norm.mean.numpy(), seen.mean(0), rtol=1e-5)
+    np.testing.assert_allclose(norm.var.numpy(), seen.var(0), rtol=1e-4)
+    out = norm(torch.from_numpy(seen).float()).numpy()
+    np.testing.assert_allclose(out.mean(0), 0.0, atol=1e-4)
+    assert norm(torch.tensor([[3.0, 1e6]]))[0, 1] == 5.0  # outliers are clipped

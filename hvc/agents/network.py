@@ -66,10 +66,40 @@ class AgentSpec:
     critic_takes_action: bool = False  # Q(h, a) for SVG(0) / Wolpertinger
 
 
+class RunningNormalizer(nn.Module):
+    """Running mean and variance of the proprioceptive and task inputs, clipped to +-5 std.
+
+    Raw inputs span orders of magnitude (a rolling ball's gyro reaches 30 rad/s, an
+    egocentric target can be 90 m away) and would saturate the LSTM's gates. The statistics
+    are buffers: they travel with the weights in checkpoints and to the target agent."""
+
+    def __init__(self, size: int):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(size, dtype=torch.float64))
+        self.register_buffer("var", torch.ones(size, dtype=torch.float64))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Merges a batch of observations (Chan et al.'s parallel variance)."""
+        x = x.reshape(-1, self.mean.shape[0]).double()
+        n, mean, var = x.shape[0], x.mean(0), x.var(0, unbiased=False)
+        total = self.count + n
+        delta = mean - self.mean
+        self.var.copy_((self.var * self.count + var * n + delta ** 2 * self.count * n / total) / total)
+        self.mean.add_(delta * n / total)
+        self.count.copy_(total)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        scaled = (x - self.mean.float()) / torch.sqrt(self.var.float() + 1e-6)
+        return torch.clamp(scaled, -5.0, 5.0)
+
+
 class HighLevelAgent(nn.Module):
     def __init__(self, spec: AgentSpec):
         super().__init__()
         self.spec = spec
+        self.normalizer = RunningNormalizer(spec.proprio_size + spec.task_size)
         self.proprio = nn.Linear(spec.proprio_size + spec.task_size, spec.proprio_out)
         self.image = ImageEncoder() if spec.vision else None
         core_in = spec.proprio_out + (256 if spec.vision else 0) + 1 + spec.action_size
@@ -88,7 +118,7 @@ class HighLevelAgent(nn.Module):
                 done: torch.Tensor | None = None):
         """Time-major inputs [T, B, ...]; `done` [T, B] resets the LSTM state before a step
         that starts a new episode. Returns (policy output, core features h, new state)."""
-        feats = [torch.relu(self.proprio(torch.cat([proprio, task], -1)))]
+        feats = [torch.relu(self.proprio(self.normalizer(torch.cat([proprio, task], -1))))]
         if self.image is not None:
             feats.append(self.image(image))
         if self.spec.discrete:

@@ -207,6 +207,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 seq["prev_reward"].append(prev_reward.copy())
                 seq["prev_action"].append(prev_action.copy())
                 seq["first"].append(first.copy())
+                agent.normalizer.update(torch.from_numpy(np.concatenate([obs["proprio"], obs["task"]], -1)))
                 with torch.no_grad():
                     logits, h_step, lstm = agent(
                         torch.from_numpy(obs["proprio"][None]).float(), torch.from_numpy(obs["task"][None]).float(),
@@ -355,6 +356,7 @@ class ContinuousLearner:
         """The online agent (with gradients) and the target agent (without) over the sampled
         unrolls from their stored LSTM states: (out, h, target out, target h)."""
         state = _split_state(self.agent, b["state"])
+        self.target.normalizer.load_state_dict(self.agent.normalizer.state_dict())  # one input scale for both
         args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
         out, h, _ = self.agent(*args, state, image=b.get("image"), done=b["first"])
         with torch.no_grad():
