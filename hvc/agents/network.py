@@ -128,11 +128,15 @@ class HighLevelAgent(nn.Module):
         x = torch.cat(feats + [prev_reward[..., None], prev], -1)
         h_c, c_c, h_p, c_p = state
         core_out, policy_out = [], []
-        for t in range(x.shape[0]):
+        # one LSTM call per stretch of steps without an episode start in any batch row (most
+        # unrolls are a single stretch): far fewer Python-level calls than stepping one by one
+        T = x.shape[0]
+        starts = [0] if done is None else sorted({0, *torch.nonzero(done.reshape(T, -1).any(-1)).flatten().tolist()})
+        for t0, t1 in zip(starts, starts[1:] + [T]):
             if done is not None:
-                keep = (1.0 - done[t].float())[None, :, None]
+                keep = (1.0 - done[t0].float())[None, :, None]
                 h_c, c_c, h_p, c_p = h_c * keep, c_c * keep, h_p * keep, c_p * keep
-            out, (h_c, c_c) = self.core(x[t:t + 1], (h_c, c_c))
+            out, (h_c, c_c) = self.core(x[t0:t1], (h_c, c_c))
             pol, (h_p, c_p) = self.policy_core(out, (h_p, c_p))
             core_out.append(out)
             policy_out.append(pol)

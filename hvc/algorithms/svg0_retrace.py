@@ -91,7 +91,7 @@ class SVG0Retrace:
         self.steps += 1
         if self.steps % self.target_update_period == 0:
             self.sync_targets()
-        return {"critic_loss": critic_loss.item(), "policy_loss": policy_loss.item(), "kl": float(
+        return {"critic_loss": critic_loss.detach().item(), "policy_loss": policy_loss.detach().item(), "kl": float(
             (kl.detach() * weight).sum()), "q": float((q.detach() * weight).sum())}
 
     def state_dict(self) -> dict:

@@ -410,7 +410,7 @@ class ContinuousLearner:
         self.steps += 1
         if self.steps % self.period == 0:
             self.target.load_state_dict(self.agent.state_dict())
-        return {"critic_loss": critic_loss.item(), "policy_loss": policy_loss.item(),
+        return {"critic_loss": critic_loss.detach().item(), "policy_loss": policy_loss.detach().item(),
                 "q": float(q.detach().mean()), "entropy": float((entropy.detach() * weight).sum())}
 
 
