@@ -121,6 +121,7 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     metrics = pd.read_csv(run_dir / "metrics.csv")
     losses = {"critic_loss", "policy_loss"} if extra else {"value_loss", "pg_loss"}  # continuous / discrete
     assert {"random_return", "episode_return"} | losses <= set(metrics.key)
+    assert not {"new_action", "hl_action", "episode_length"} & set(metrics.key)  # no env step info in the rows
     assert metrics.learner_steps.max() > 0
     first = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     _run("total_steps=160", *common, f"resume={run_dir}", cwd=tmp_path)

@@ -139,7 +139,8 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     else:
         learner = None if discrete else ContinuousLearner(agent, cfg.algorithm, cfg.controller, space)
     query = isinstance(learner, QueryLearner)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=float(cfg.algorithm.learning_rate))
+    optimizer = torch.optim.Adam(agent.parameters(),
+                                 lr=float(cfg.controller.get("learning_rate", cfg.algorithm.learning_rate)))
     n, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
     capacity = max(batch, int(agent_cfg.replay_size) // n)
     hidden = max(spec.lstm_size, spec.policy_lstm)
@@ -186,7 +187,8 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     prev_reward, first = np.zeros(E, np.float32), np.ones(E, np.float32)
     prev_action = np.zeros(E, np.int64) if discrete else np.zeros((E, spec.action_size), np.float32)
     returns: list[float] = []
-    update_credit = 0.0
+    update_credit, losses = 0.0, {}
+    updates_per_unroll = float(cfg.controller.get("updates_per_unroll", hl.updates_per_unroll))
     start, last_save, last_log = time.perf_counter(), time.monotonic(), counters["env_steps"]
     bar = tqdm(total=int(cfg.total_steps), initial=counters["env_steps"], desc="hl train", unit="step",
                disable=None, mininterval=2.0)
@@ -260,14 +262,14 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                                ("action", "log_mu", "reward", "discount", "new_action") + (("query",) if query else ())})
                 replay.add(state=start_state[e], **fields)
             if replay.size >= int(hl.min_replay_unrolls):
-                update_credit += float(hl.updates_per_unroll) * E  # per unroll added; fractions accumulate
+                update_credit += updates_per_unroll * E  # per unroll added; fractions accumulate
                 while update_credit >= 1.0:
                     update_credit -= 1.0
                     sample = replay.sample(batch, rng)
-                    info = (_update(agent, optimizer, sample, gamma, entropy_cost, cfg.algorithm) if discrete
-                            else learner.update(optimizer, sample, gamma))
-                    if not all(np.isfinite(v) for v in info.values()):
-                        raise FloatingPointError(f"non-finite loss {info} at env step {counters['env_steps']}; "
+                    losses = (_update(agent, optimizer, sample, gamma, entropy_cost, cfg.algorithm) if discrete
+                              else learner.update(optimizer, sample, gamma))
+                    if not all(np.isfinite(v) for v in losses.values()):
+                        raise FloatingPointError(f"non-finite loss {losses} at env step {counters['env_steps']}; "
                                                  f"the last good checkpoint is {checkpoint}")
                     counters["updates"] += 1
             if counters["env_steps"] - last_log >= int(cfg.log_every):
@@ -278,8 +280,8 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                     row["episode_return"] = float(np.mean(returns))
                     bar.set_postfix(ret=f"{row['episode_return']:.2f}")
                     returns = []
-                if counters["updates"]:
-                    row.update(info)
+                if losses:
+                    row.update(losses)  # the latest update's
                 metrics.log(counters["env_steps"], row, learner_steps=counters["updates"] * batch * n)
             if time.monotonic() - last_save > float(hl.checkpoint_seconds):
                 save()
@@ -344,7 +346,7 @@ class ContinuousLearner:
         self.sigma_clip = tuple(controller.get("sigma_clip", (0.05, 1.0)))
         self.entropy_cost = float(controller.get("entropy_cost", algorithm.get("entropy_cost", 1e-5)))
         self.lam = float(algorithm.get("retrace_lambda", 1.0))
-        self.period = int(algorithm.get("target_update_period", 100))
+        self.period = int(controller.get("target_update_period", algorithm.get("target_update_period", 100)))
         self.value_samples = int(algorithm.get("value_samples", 4))
         self.steps = 0
 
