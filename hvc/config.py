@@ -6,6 +6,8 @@ value with the allowed ones.
 """
 from __future__ import annotations
 
+import os
+
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -16,7 +18,7 @@ GROUPS = ("body", "task", "controller", "algorithm", "clips", "reward", "render"
 STAGES = ("rollout", "train", "info", "convert", "playback", "openloop", "lowlevel", "evaluate")
 MOCAP_STAGES = ("info", "convert", "playback", "openloop", "lowlevel", "evaluate")
 # Top-level keys that must be positive integers.
-POSITIVE_INTS = ("fragment_len", "total_steps", "num_envs", "log_every", "video_steps", "episodes")
+POSITIVE_INTS = ("fragment_len", "total_steps", "log_every", "video_steps", "episodes")
 # Task kinds with an environment on the fast path (tracking arrives with the mocap issue).
 RUNNABLE_TASK_KINDS = ("go_to_target", "corridor", "maze", "tracking")
 
@@ -55,10 +57,19 @@ def _positive_int(cfg: DictConfig, key: str) -> None:
         raise ConfigError(f"{key}={value!r} must be a positive integer (e.g. {key}=3)")
 
 
+def resolve_num_envs(cfg: DictConfig) -> None:
+    """`num_envs=auto` becomes the number of cores, so run dirs record the number used."""
+    if cfg.num_envs == "auto":
+        cfg.num_envs = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
+
+
 def validate(cfg: DictConfig) -> None:
     """Raises ConfigError on the first bad value or combination."""
     for key in POSITIVE_INTS:
         _positive_int(cfg, key)
+    if cfg.num_envs != "auto" and (isinstance(cfg.num_envs, bool) or not isinstance(cfg.num_envs, int)
+                                   or cfg.num_envs < 1):
+        raise ConfigError(f"num_envs={cfg.num_envs!r} must be a positive integer or auto (as many as cores)")
     if cfg.stage not in STAGES:
         raise ConfigError(f"unknown stage {cfg.stage!r}; allowed: {', '.join(STAGES)}")
     if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool):
@@ -110,4 +121,5 @@ def compose(overrides: Sequence[str] = ()) -> DictConfig:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = hydra_compose(config_name="config", overrides=list(overrides))
     validate(cfg)
+    resolve_num_envs(cfg)
     return cfg

@@ -27,6 +27,7 @@ def test_default_main_job_writes_the_run_directory(tmp_path):
     assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["counters"]["env_steps"] == 120
     resolved = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
     assert resolved["seed"] == 4 and resolved["task"]["name"] == "go_to_target"
+    assert resolved["num_envs"] == len(__import__("os").sched_getaffinity(0))  # auto: one actor per core
     assert resolved["controller"]["fragment_len"] == 3  # interpolations resolved
 
 

@@ -92,6 +92,7 @@ def _hvc_run(*args, cwd):
     (["stage=dance"], "dance"),
     (["task=tracking"], "stage=lowlevel"),
     (["hl.updates_per_unroll=0"], "hl.updates_per_unroll=0"),
+    (["num_envs=0"], "num_envs=0 must be a positive integer or auto"),
 ])
 def test_cli_rejects_bad_values_with_one_line_before_work(tmp_path, args, needle):
     result = _hvc_run(*args, cwd=tmp_path)

@@ -348,6 +348,7 @@ class ContinuousLearner:
         self.lam = float(algorithm.get("retrace_lambda", 1.0))
         self.period = int(controller.get("target_update_period", algorithm.get("target_update_period", 100)))
         self.value_samples = int(algorithm.get("value_samples", 4))
+        self.kl_cost = float(controller.get("kl_cost", algorithm.get("kl_cost", 0.0)))
         self.steps = 0
 
     def distribution(self, agent, policy_out):
@@ -384,12 +385,13 @@ class ContinuousLearner:
             targets = retrace_targets(b["reward"], b["discount"], q_taken, v_next, traces, gamma)
         q = self.agent.values(h[:-1], b["action"])
         critic_loss = 0.5 * ((q - targets) ** 2).mean()
-        return self.step(optimizer, critic_loss, out, h, b, q)
+        return self.step(optimizer, critic_loss, out, h, b, q, t_out)
 
     def step(self, optimizer, critic_loss: torch.Tensor, out: torch.Tensor, h: torch.Tensor, b: dict,
-             q: torch.Tensor) -> dict[str, float]:
-        """Adds the SVG(0) policy loss to `critic_loss`, takes one optimiser step and refreshes
-        the target agent on schedule."""
+             q: torch.Tensor, target_out: torch.Tensor | None = None) -> dict[str, float]:
+        """Adds the SVG(0) policy loss to `critic_loss` (with eta KL(pi || pi_target) on the target
+        agent's policy when `target_out` is given, as at the low level), takes one optimiser step
+        and refreshes the target agent on schedule."""
         dist = self.distribution(self.agent, out[:-1])
         # Q is only ever trained on actions inside the range (actors clip them): a sample outside
         # it is clipped too, so Q's extrapolation cannot drag the mean past the bounds
@@ -404,7 +406,10 @@ class ContinuousLearner:
         # pinned to a bound could never follow a critic that later changes its mind
         mean_raw = out[:-1].chunk(2, -1)[0]
         saturation = (torch.relu(mean_raw.abs() - MEAN_RAW_LIMIT) ** 2).sum(-1)
-        policy_loss = -((q_pi + self.entropy_cost * entropy - saturation) * weight).sum()
+        kl = torch.zeros_like(entropy)
+        if target_out is not None and self.kl_cost > 0:
+            kl = torch.distributions.kl_divergence(dist, self.distribution(self.target, target_out[:-1])).sum(-1)
+        policy_loss = -((q_pi + self.entropy_cost * entropy - saturation - self.kl_cost * kl) * weight).sum()
         optimizer.zero_grad()
         (critic_loss + policy_loss).backward()
         torch.nn.utils.clip_grad_norm_(self.agent.parameters(), 40.0)
@@ -413,7 +418,8 @@ class ContinuousLearner:
         if self.steps % self.period == 0:
             self.target.load_state_dict(self.agent.state_dict())
         return {"critic_loss": critic_loss.detach().item(), "policy_loss": policy_loss.detach().item(),
-                "q": float(q.detach().mean()), "entropy": float((entropy.detach() * weight).sum())}
+                "q": float(q.detach().mean()), "entropy": float((entropy.detach() * weight).sum()),
+                "kl": float((kl.detach() * weight).sum())}
 
 
 class QueryLearner(ContinuousLearner):
@@ -459,4 +465,4 @@ class QueryLearner(ContinuousLearner):
         q_query = self.agent.values(h[:-1], b["query"])
         q_selected = self.agent.values(h[:-1], b["action"])
         critic_loss = 0.5 * (((q_query - targets) ** 2).mean() + ((q_selected - targets) ** 2).mean())
-        return self.step(optimizer, critic_loss, out, h, b, q_selected)
+        return self.step(optimizer, critic_loss, out, h, b, q_selected, t_out)
