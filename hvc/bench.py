@@ -120,7 +120,7 @@ def expert_inference_us(hidden: int, seconds: float) -> float:
     from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
 
     torch.manual_seed(0)
-    cfg = compose(["task=tracking"])
+    cfg = compose(["stage=lowlevel", "task=tracking"])
     obs_size = 136 + 1  # the humanoid's proprioception + the time input
     actor = NumpyPolicy.from_torch(GaussianPolicy(obs_size, 56, [hidden, hidden], float(cfg.lowlevel.sigma)))
     obs = np.random.default_rng(0).normal(size=obs_size).astype(np.float32)

@@ -153,8 +153,8 @@ def test_expert_training_resumes_from_its_checkpoint(tmp_path):
     from hvc.lowlevel.train import train_expert
     from hvc.runtime.env_config import env_dicts
 
-    cfg = compose(["task=tracking", "clip=left_turn", "lowlevel.bc_steps=20", "lowlevel.bc_rollouts=2",
-                   "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=1", "lowlevel.log_every=100",
+    cfg = compose(["stage=lowlevel", "task=tracking", "clip=left_turn", "lowlevel.bc_steps=20",
+                   "lowlevel.bc_rollouts=2", "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=1", "lowlevel.log_every=100",
                    "lowlevel.batch_size=4"])
     task, body, render = env_dicts(cfg)
     ll = OmegaConf.to_container(cfg.lowlevel)

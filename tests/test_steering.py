@@ -56,8 +56,8 @@ def test_steerable_tracking_task_draws_rates_and_shows_them():
     from hvc.mocap.clip_sets import select_entry
     from hvc.mocap.source import find_mocap_file
 
-    cfg = compose(["task=tracking", "clips=steerable"])
-    task, body, render = plain_cfg("task=tracking", "clips=steerable")
+    cfg = compose(["stage=lowlevel", "task=tracking", "clips=steerable"])
+    task, body, render = plain_cfg("stage=lowlevel", "task=tracking", "clips=steerable")
     task.update(clip=select_entry(cfg.clips, None).as_dict(), mocap_file=str(find_mocap_file(None, "2019")))
     env = FastEnv.build(task, body, render, seed=0)
     logic = env.layout.logic

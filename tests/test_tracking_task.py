@@ -15,8 +15,8 @@ def _env(clip="run", *extra):
     from hvc.mocap.source import find_mocap_file
     from hvc.config import compose
 
-    cfg = compose(["task=tracking", *extra])
-    task, body, render = plain_cfg("task=tracking", *extra)
+    cfg = compose(["stage=lowlevel", "task=tracking", *extra])
+    task, body, render = plain_cfg("stage=lowlevel", "task=tracking", *extra)
     task.update(clip=select_entry(cfg.clips, clip).as_dict(), mocap_file=str(find_mocap_file(None, "2019")))
     return FastEnv.build(task, body, render, seed=0)
 

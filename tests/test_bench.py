@@ -1,0 +1,15 @@
+"""`hvc-bench` runs end to end (numbers are not asserted: these machines are noisy)."""
+import re
+import subprocess
+import sys
+
+
+def test_bench_prints_every_measurement_line():
+    result = subprocess.run([sys.executable, "-m", "hvc.bench", "--tasks", "go_to_target", "--seconds", "0.2",
+                             "--no-composer", "--no-render"], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = result.stdout
+    assert re.search(r"bench task=go_to_target ceiling_sps=\d+ hvc_sps=\d+", out)
+    for task in ("go_to_target", "gaps"):
+        assert re.search(rf"bench hl task={task} controller=fragments actor_sps=\d+ learner_tps=\d+", out)
+    assert re.search(r"bench expert_inference hidden=256 us_per_step=[\d.]+ goal_us=30", out)
