@@ -163,7 +163,8 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, float]:
     from hvc.agents.network import AgentSpec, HighLevelAgent
     from hvc.controllers.base import ControlledEnv
     from hvc.controllers.fragments import FragmentsController
-    from hvc.runtime.hl_train import Unrolls, _update
+    from hvc.algorithms.hl_learners import vtrace_update
+    from hvc.runtime.hl_train import Unrolls
 
     torch.set_num_threads(1)
     cfg = compose([f"task={task_name}", "task.layout_pool=1", "task.init_from_clips=false"])
@@ -193,7 +194,7 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, float]:
     replay.new_action[:] = 1.0
     updates, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds or updates < 2:
-        _update(agent, optimizer, replay.sample(batch, rng), 0.99, 0.01, cfg.algorithm)
+        vtrace_update(agent, optimizer, replay.sample(batch, rng), 0.99, 0.01, cfg.algorithm)
         updates += 1
     learner_tps = updates * batch * unroll / (time.perf_counter() - t0)
     return actor_sps, learner_tps

@@ -47,7 +47,7 @@ def test_continuous_policy_stays_steerable_under_a_critic_that_prefers_a_bound()
     import numpy as np
     from omegaconf import OmegaConf
 
-    from hvc.runtime.hl_train import ContinuousLearner
+    from hvc.algorithms.hl_learners import ContinuousLearner
 
     torch.manual_seed(0)
     spec = AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
