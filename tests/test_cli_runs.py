@@ -125,6 +125,10 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     assert not {"new_action", "hl_action", "episode_length"} & set(metrics.key)  # no env step info in the rows
     assert metrics.learner_steps.max() > 0
     first = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    resolved = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
+    pace = resolved["controller"].get("updates_per_unroll", resolved["hl"]["updates_per_unroll"])
+    rounds = 80 // (2 * resolved["task"]["agent"]["unroll"])  # 2 envs, one unroll each per round
+    assert first["counters"]["updates"] == int(rounds * 2 * pace)  # the learner's pace per unroll added
     _run("total_steps=160", *common, f"resume={run_dir}", cwd=tmp_path)
     second = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert second["counters"]["env_steps"] >= 160 > first["counters"]["env_steps"]
