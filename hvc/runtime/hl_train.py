@@ -34,6 +34,7 @@ from tqdm import tqdm
 from hvc.agents.network import AgentSpec, HighLevelAgent
 from hvc.algorithms.hl_learners import ContinuousLearner, QueryLearner, pack_state, vtrace_update
 from hvc.envs.vector_env import VectorEnv
+from hvc.errors import ControllerUnavailable
 from hvc.runtime.env_config import env_dicts
 from hvc.runtime.episodes import EpisodeRecorder, write_fragment_table
 from hvc.runtime.metrics import MetricsLogger
@@ -107,7 +108,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                      clip_set=str(cfg.clips.name))
     if envs.controller is None:
         envs.close()
-        raise RuntimeError(f"controller={cfg.controller.name} could not be built: {envs.why_no_controller}")
+        raise ControllerUnavailable(f"controller={cfg.controller.name} could not be built: {envs.why_no_controller}")
     vision = "image" in envs.observation_sizes
     space = envs.action_space
     discrete = space.discrete
