@@ -101,10 +101,9 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("task=tracking is the low-level tracking task: train experts with stage=lowlevel "
                           "(or drive it with stage=rollout); stage=train takes a high-level task: "
                           f"{', '.join(t for t in group_options('task') if t != 'tracking')}")
-    for key, node in (("hl.updates_per_unroll", cfg.hl), ("controller.updates_per_unroll", cfg.controller)):
-        if node.get("updates_per_unroll") is not None and float(node.updates_per_unroll) <= 0:
-            raise ConfigError(f"{key}={node.updates_per_unroll} must be positive (e.g. 0.25: "
-                              f"one learner update per 4 unrolls)")
+    if float(cfg.algorithm.get("updates_per_unroll", 1)) <= 0:
+        raise ConfigError(f"algorithm.updates_per_unroll={cfg.algorithm.updates_per_unroll} must be positive "
+                          f"(e.g. 0.25: one learner update per 4 unrolls)")
     if float(cfg.task.control_timestep) <= 0 or float(cfg.task.physics_timestep) <= 0:
         raise ConfigError("task.control_timestep and task.physics_timestep must be positive")
     ratio = float(cfg.task.control_timestep) / float(cfg.task.physics_timestep)

@@ -21,13 +21,15 @@ def test_default_main_job_writes_the_run_directory(tmp_path):
     _run("total_steps=120", "log_every=20", "seed=4", "hl.random_episodes=1", "hl.min_replay_unrolls=4", cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     metrics = pd.read_csv(run_dir / "metrics.csv")
+    resolved = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
+    envs = resolved["num_envs"]
+    assert envs == len(__import__("os").sched_getaffinity(0))  # auto: one actor per core
+    steps = -(-120 // (10 * envs)) * 10 * envs  # whole rounds of one 10-step unroll per env
     assert list(metrics.columns) == ["env_steps", "learner_steps", "wall_time", "key", "value"]
     assert {"random_return", "steps_per_second", "value_loss"} <= set(metrics.key)  # it trains
-    assert metrics.env_steps.max() == 120 and metrics.learner_steps.max() > 0
-    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["counters"]["env_steps"] == 120
-    resolved = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
+    assert metrics.env_steps.max() == steps and metrics.learner_steps.max() > 0
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["counters"]["env_steps"] == steps
     assert resolved["seed"] == 4 and resolved["task"]["name"] == "go_to_target"
-    assert resolved["num_envs"] == len(__import__("os").sched_getaffinity(0))  # auto: one actor per core
     assert resolved["controller"]["fragment_len"] == 3  # interpolations resolved
 
 
@@ -126,8 +128,8 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     assert metrics.learner_steps.max() > 0
     first = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     resolved = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
-    pace = resolved["controller"].get("updates_per_unroll", resolved["hl"]["updates_per_unroll"])
-    rounds = 80 // (2 * resolved["task"]["agent"]["unroll"])  # 2 envs, one unroll each per round
+    pace = resolved["algorithm"]["updates_per_unroll"]
+    rounds = -(-80 // (2 * resolved["task"]["agent"]["unroll"]))  # 2 envs, one unroll each per round
     assert first["counters"]["updates"] == int(rounds * 2 * pace)  # the learner's pace per unroll added
     _run("total_steps=160", *common, f"resume={run_dir}", cwd=tmp_path)
     second = torch.load(run_dir / "checkpoint.pt", weights_only=True)
@@ -208,3 +210,19 @@ def test_structured_policy_trains_ships_and_evaluates(tmp_path, clips, line):
     else:
         attempted = int(re.search(r"of (\d+)", out).group(1))
         assert attempted > 0  # the walks switch behaviours within the episodes
+
+
+def test_resuming_a_checkpoint_of_an_older_format_fails_in_one_line(tmp_path):
+    import torch
+
+    common = ["body=rolling_ball", "controller=end_to_end", "task.time_limit=1.0", "num_envs=1",
+              "hl.random_episodes=0", "hl.min_replay_unrolls=2", "algorithm.batch_size=4"]
+    _run("total_steps=40", *common, cwd=tmp_path)
+    [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
+    state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    state["agent"] = {k: v for k, v in state["agent"].items() if not k.startswith("normalizer.")}
+    torch.save(state, run_dir / "checkpoint.pt")  # as written before input normalisation
+    result = subprocess.run([sys.executable, "-m", "hvc.cli", "total_steps=80", *common, f"resume={run_dir}"],
+                            capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    lines = [line for line in result.stderr.splitlines() if line.strip() and "absl" not in line]
+    assert result.returncode == 2 and len(lines) == 1 and "older hvc" in lines[0], result.stderr[-2000:]

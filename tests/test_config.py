@@ -91,7 +91,7 @@ def _hvc_run(*args, cwd):
     (["task=nowhere"], "nowhere"),
     (["stage=dance"], "dance"),
     (["task=tracking"], "stage=lowlevel"),
-    (["hl.updates_per_unroll=0"], "hl.updates_per_unroll=0"),
+    (["algorithm.updates_per_unroll=0"], "algorithm.updates_per_unroll=0"),
     (["num_envs=0"], "num_envs=0 must be a positive integer or auto"),
     (["controller=fragments", "task=gaps", "library=null", "clips=gaps", "num_envs=1"], "stage=lowlevel clips=gaps"),
 ])

@@ -91,7 +91,9 @@ class RunningNormalizer(nn.Module):
         self.count.copy_(total)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        scaled = (x - self.mean.float()) / torch.sqrt(self.var.float() + 1e-6)
+        # a floor of 0.1 on the std: near-constant inputs (and the first few samples) are not
+        # blown up into +-5 by a vanishing variance
+        scaled = (x - self.mean.float()) / torch.sqrt(self.var.float() + 1e-2)
         return torch.clamp(scaled, -5.0, 5.0)
 
 

@@ -74,11 +74,11 @@ class ContinuousLearner:
         if controller.get("steering_range") is not None:
             self.low, self.high = (float(v) for v in controller.steering_range)
         self.sigma_clip = tuple(controller.get("sigma_clip", (0.05, 1.0)))
-        self.entropy_cost = float(controller.get("entropy_cost", algorithm.get("entropy_cost", 1e-5)))
+        self.entropy_cost = float(algorithm.get("entropy_cost", 1e-5))
         self.lam = float(algorithm.get("retrace_lambda", 1.0))
-        self.period = int(controller.get("target_update_period", algorithm.get("target_update_period", 100)))
+        self.period = int(algorithm.get("target_update_period", 100))
         self.value_samples = int(algorithm.get("value_samples", 4))
-        self.kl_cost = float(controller.get("kl_cost", algorithm.get("kl_cost", 0.0)))
+        self.kl_cost = float(algorithm.get("kl_cost", 0.0))
         self.steps = 0
 
     def distribution(self, agent, policy_out):

@@ -59,24 +59,29 @@ def evaluate_open_loop(env: FastEnv, episodes: int) -> dict[str, float]:
 
 
 def steering_response(env: FastEnv, act: Callable[[dict, object], np.ndarray], rates, episodes_per_rate: int,
-                      settle_steps: int = 10) -> list[dict[str, float]]:
+                      cycles: int = 8, settle_steps: int = 10) -> list[dict[str, float]]:
     """Commanded vs achieved turning rate of the steerable policy (Sec. 2.2 evaluation).
 
-    Each commanded rate is held for every cycle of the episode; the achieved rate is the
-    slope of the body's unwrapped heading after `settle_steps` (a linear fit spans the gait's
-    own sway). Episodes too short after settling (late random starts, early falls) give no
-    rate but still count for completion.
+    Each commanded rate is held for all `cycles` gait cycles of the episode; the achieved
+    rate is the slope of the body's unwrapped heading after `settle_steps` (a linear fit
+    spans the gait's own sway). Episodes too short after settling (late random starts,
+    early falls) give no rate but still count for completion.
     """
     from hvc.mocap.clips import root_heading
 
-    logic = env.layout.logic
+    logics = [layout.logic for layout in env.layouts]
+    saved_cycles = [logic.cycles for logic in logics]
     rows = []
     try:
+        for logic in logics:
+            logic.cycles = int(cycles)
         for rate in rates:
-            logic.held_rate = float(rate)
+            for logic in logics:
+                logic.held_rate = float(rate)
             achieved, completion, fell = [], [], []
             for _ in range(episodes_per_rate):
                 obs = env.reset()
+                logic = env.layout.logic
                 quats = []
                 while True:
                     obs, _, _, done = env.step(act(obs, logic))
@@ -92,7 +97,8 @@ def steering_response(env: FastEnv, act: Callable[[dict, object], np.ndarray], r
                          "achieved_rate": float(np.mean(achieved)) if achieved else float("nan"),
                          "completion": float(np.mean(completion)), "fall_rate": float(np.mean(fell))})
     finally:
-        logic.held_rate = None
+        for logic, n in zip(logics, saved_cycles):
+            logic.held_rate, logic.cycles = None, n
     return rows
 
 
@@ -104,10 +110,10 @@ def switching_transitions(env: FastEnv, act: Callable[[dict, object], np.ndarray
     it is completed when the body then keeps going for `hold_steps` (one gait cycle) or
     until the walk ends, without a fall.
     """
-    logic = env.layout.logic
     attempted = completed = 0
     for _ in range(episodes):
         obs = env.reset()
+        logic = env.layout.logic
         labels, start = logic.labels.copy(), logic.start
         while True:
             obs, _, _, done = env.step(act(obs, logic))

@@ -15,12 +15,13 @@ from omegaconf import DictConfig
 
 from hvc.lowlevel.evaluation import (evaluate, evaluate_open_loop, policy_observation, steering_response,
                                      switching_transitions)
+from hvc.errors import HvcUserError
 from hvc.lowlevel.library import ExpertLibrary, shipped_library
 from hvc.runtime.env_config import env_dicts
 from hvc.runtime.metrics import MetricsLogger
 
 
-STEERING_RATES = (-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5)  # rad/s, the steerable policy's training range
+STEERING_RATE_COUNT = 7  # commanded rates, evenly over the tracking task's turn_rates (training range)
 STEERING_CYCLES = 8  # gait cycles per steering episode: long enough to fit a heading slope
 
 
@@ -34,14 +35,12 @@ def expert_env(cfg: DictConfig, expert, library: ExpertLibrary):
         from hvc.mocap.source import find_mocap_file
 
         if "switching" not in library.meta:
-            raise ValueError("this switching library does not record its transition graph (meta 'switching'); "
+            raise HvcUserError("this switching library does not record its transition graph (meta 'switching'); "
                              "reassemble it with `hvc-run stage=lowlevel clips=switching resume=<run dir>`")
         task["clip"] = {"switching": True, "entries": library.meta["switching_entries"], **library.meta["switching"]}
         task["mocap_file"] = str(find_mocap_file(cfg.mocap_file, str(cfg.body.get("model_version", "2019"))))
     else:
         task["reference"] = expert.reference
-    if expert.entry.get("steer"):
-        task["cycle_repeats"] = STEERING_CYCLES
     return FastEnv.build(task, body, render, seed=cfg.seed, render=False)
 
 
@@ -50,8 +49,9 @@ def structured_scores(cfg: DictConfig, env, expert, act, metrics: MetricsLogger)
     transitions (Sec. 2.2); nothing for a single-clip expert."""
     clip = expert.entry["id"]
     if expert.entry.get("steer"):
-        per_rate = max(1, int(cfg.episodes) // len(STEERING_RATES))
-        rows = steering_response(env, act, STEERING_RATES, per_rate)
+        rates = np.linspace(*env.layout.logic.turn_rates, STEERING_RATE_COUNT)
+        per_rate = max(1, int(cfg.episodes) // len(rates))
+        rows = steering_response(env, act, rates, per_rate, cycles=STEERING_CYCLES)
         for row in rows:
             metrics.log(0, {f"achieved_rate/{clip}/{row['commanded_rate']:+.1f}": row["achieved_rate"],
                             f"completion/{clip}/{row['commanded_rate']:+.1f}": row["completion"]})

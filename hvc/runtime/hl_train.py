@@ -9,8 +9,7 @@ the learner samples unrolls, replays the LSTM from the stored state and applies 
 (hvc.algorithms.vtrace): value loss every step, policy gradient and entropy only where a
 new high-level action was taken. Continuous controllers (steerable, end_to_end) train with
 SVG(0) + Retrace (ContinuousLearner), query with a Wolpertinger-style learner
-(QueryLearner). `updates_per_unroll` (controller, else `hl`) paces the learner against
-the actors. The x-axis of the paper's curves, transitions processed by the learner, is
+(QueryLearner). `algorithm.updates_per_unroll` paces the learner against the actors. The x-axis of the paper's curves, transitions processed by the learner, is
 logged as `learner_steps`; env steps as `env_steps`.
 
 Checkpoints (agent, optimiser, counters, replay position, RNG states) every
@@ -34,7 +33,7 @@ from tqdm import tqdm
 from hvc.agents.network import AgentSpec, HighLevelAgent
 from hvc.algorithms.hl_learners import ContinuousLearner, QueryLearner, pack_state, vtrace_update
 from hvc.envs.vector_env import VectorEnv
-from hvc.errors import ControllerUnavailable
+from hvc.errors import ControllerUnavailable, HvcUserError
 from hvc.runtime.env_config import env_dicts
 from hvc.runtime.episodes import EpisodeRecorder, write_fragment_table
 from hvc.runtime.metrics import MetricsLogger
@@ -129,7 +128,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         learner = None if discrete else ContinuousLearner(agent, cfg.algorithm, cfg.controller, space)
     query = isinstance(learner, QueryLearner)
     optimizer = torch.optim.Adam(agent.parameters(),
-                                 lr=float(cfg.controller.get("learning_rate", cfg.algorithm.learning_rate)))
+                                 lr=float(cfg.algorithm.learning_rate))
     n, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
     capacity = max(batch, int(agent_cfg.replay_size) // n)
     hidden = max(spec.lstm_size, spec.policy_lstm)
@@ -139,14 +138,22 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         replay.query = np.zeros_like(replay.action)
     prev_query = np.zeros((cfg.num_envs, spec.action_size), np.float32) if query else None
     counters = {"env_steps": 0, "updates": 0, "episodes": 0}
+    update_credit = 0.0  # learner updates owed to the actors (algorithm.updates_per_unroll may be fractional)
     checkpoint = run_dir / "checkpoint.pt"
     if checkpoint.exists():
         state = torch.load(checkpoint, weights_only=True)
+        if "normalizer.mean" not in state["agent"]:
+            raise HvcUserError(f"{checkpoint} was written by an older hvc (before input normalisation and the "
+                               f"sigmoid-bounded sigma) and cannot be resumed; start a new run")
         agent.load_state_dict(state["agent"])
         optimizer.load_state_dict(state["optimizer"])
+        for group in optimizer.param_groups:  # the configured rate, not the one saved with the optimiser
+            group["lr"] = float(cfg.algorithm.learning_rate)
+        counters = {k: int(v) for k, v in state["counters"].items()}
+        update_credit = float(state.get("update_credit", 0.0))
         if learner is not None:
             learner.target.load_state_dict(state["target_agent"])
-        counters = {k: int(v) for k, v in state["counters"].items()}
+            learner.steps = counters["updates"]  # keeps the target refresh schedule
         rng.bit_generator.state = json.loads(state["rng"])
         torch.set_rng_state(state["torch_rng"])
         log.info("resumed from %s at env step %d (replay refills)", checkpoint, counters["env_steps"])
@@ -157,7 +164,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                     "spec": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(spec).items()},
                     **({"target_agent": learner.target.state_dict()} if learner is not None else {}),
                     "replay_position": replay.position, "rng": json.dumps(rng.bit_generator.state),
-                    "torch_rng": torch.get_rng_state()}, tmp)
+                    "torch_rng": torch.get_rng_state(), "update_credit": update_credit}, tmp)
         os.replace(tmp, checkpoint)
 
     gamma, entropy_cost = float(agent_cfg.gamma), float(cfg.algorithm.get("entropy_cost", 0.01))
@@ -176,8 +183,8 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     prev_reward, first = np.zeros(E, np.float32), np.ones(E, np.float32)
     prev_action = np.zeros(E, np.int64) if discrete else np.zeros((E, spec.action_size), np.float32)
     returns: list[float] = []
-    update_credit, losses = 0.0, {}
-    updates_per_unroll = float(cfg.controller.get("updates_per_unroll", hl.updates_per_unroll))
+    losses: dict[str, float] = {}
+    updates_per_unroll = float(cfg.algorithm.updates_per_unroll)
     start, last_save, last_log = time.perf_counter(), time.monotonic(), counters["env_steps"]
     bar = tqdm(total=int(cfg.total_steps), initial=counters["env_steps"], desc="hl train", unit="step",
                disable=None, mininterval=2.0)
