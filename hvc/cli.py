@@ -39,6 +39,9 @@ def _run(cfg: DictConfig) -> None:
     except USER_ERRORS as error:  # a missing file or clip, an unavailable controller: one line, no traceback
         print(f"hvc-run: error: {error}", file=sys.stderr)
         sys.exit(2)
+    except KeyboardInterrupt:  # Ctrl-C or `kill`: the stage has saved its checkpoint
+        print(f"hvc-run: stopped; continue with resume={run_dir}", file=sys.stderr)
+        sys.exit(130)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
 
 

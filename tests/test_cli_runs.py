@@ -226,3 +226,24 @@ def test_resuming_a_checkpoint_of_an_older_format_fails_in_one_line(tmp_path):
                             capture_output=True, text=True, cwd=tmp_path, timeout=600)
     lines = [line for line in result.stderr.splitlines() if line.strip() and "absl" not in line]
     assert result.returncode == 2 and len(lines) == 1 and "older hvc" in lines[0], result.stderr[-2000:]
+
+
+def test_a_killed_training_run_saves_its_checkpoint_and_says_how_to_resume(tmp_path):
+    import signal
+    import time
+
+    import torch
+
+    proc = subprocess.Popen([sys.executable, "-m", "hvc.cli", "body=rolling_ball", "controller=end_to_end",
+                             "num_envs=1", "total_steps=10000000", "hl.random_episodes=0", "hl.min_replay_unrolls=2",
+                             "algorithm.batch_size=4", "log_every=10", "hydra.run.dir=run"],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    metrics = tmp_path / "run" / "metrics.csv"
+    while time.monotonic() < deadline and not (metrics.exists() and "critic_loss" in metrics.read_text()):
+        time.sleep(1)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "resume=" in err, err[-2000:]
+    state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
+    assert state["counters"]["env_steps"] > 0 and state["counters"]["updates"] > 0

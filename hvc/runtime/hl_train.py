@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,7 @@ from hvc.errors import ControllerUnavailable, HvcUserError
 from hvc.runtime.env_config import env_dicts
 from hvc.runtime.episodes import EpisodeRecorder, write_fragment_table
 from hvc.runtime.metrics import MetricsLogger
+from hvc.runtime.signals import raise_interrupt
 
 log = logging.getLogger(__name__)
 
@@ -188,6 +190,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     start, last_save, last_log = time.perf_counter(), time.monotonic(), counters["env_steps"]
     bar = tqdm(total=int(cfg.total_steps), initial=counters["env_steps"], desc="hl train", unit="step",
                disable=None, mininterval=2.0)
+    previous_sigterm = signal.signal(signal.SIGTERM, raise_interrupt)  # `kill` saves a checkpoint too
     try:
         if counters["env_steps"] == 0 and int(hl.random_episodes) > 0:
             random_returns = _random_baseline(envs, int(hl.random_episodes), rng)
@@ -283,6 +286,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 save()
                 last_save = time.monotonic()
     finally:
+        signal.signal(signal.SIGTERM, previous_sigterm)
         save()
         bar.close()
         metrics.close()

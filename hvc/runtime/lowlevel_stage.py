@@ -23,6 +23,7 @@ from hvc.config import group_config
 from hvc.mocap.clip_sets import entries_of, resolve
 from hvc.mocap.source import find_mocap_file
 from hvc.runtime.env_config import env_dicts
+from hvc.runtime.signals import raise_interrupt
 
 
 def expert_dir(run_dir: Path, index: int, entry) -> Path:
@@ -40,10 +41,6 @@ def _train_worker(task, body, render, cfg_ll, out_dir: str, total_steps: int, se
     except Exception:  # noqa: BLE001 - recorded for the parent, which names the clip
         (out / "error.txt").write_text(traceback.format_exc())
         raise
-
-
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt
 
 
 def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
@@ -81,7 +78,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
                            position=k, disable=None, mininterval=2.0) for k, (entry, out, _) in enumerate(jobs)}
     pending = list(jobs)
     failed = []
-    previous = signal.signal(signal.SIGTERM, _raise_interrupt)  # `kill` stops workers too
+    previous = signal.signal(signal.SIGTERM, raise_interrupt)  # `kill` stops workers too
     try:
         while pending or running:
             while pending and len(running) < limit:
