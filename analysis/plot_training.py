@@ -15,14 +15,17 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
 
-def plot(out: Path, run_dirs: list[Path], smooth: int = 10) -> Path:
+def plot(out: Path, run_dirs: list[Path], points: int = 60) -> Path:
+    """Each run's returns as a running mean over about 1/`points` of its rows, so that long
+    runs (thousands of log rows, one episode each) read as curves rather than spikes."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for run in run_dirs:
         m = pd.read_csv(run / "metrics.csv")
         returns = m[m.key == "episode_return"]
         label = run.name
+        window = max(10, len(returns) // points)
         for ax, x in zip(axes, ("learner_steps", "env_steps")):
-            line, = ax.plot(returns[x], returns.value.rolling(smooth, min_periods=1).mean(), label=label)
+            line, = ax.plot(returns[x], returns.value.rolling(window, min_periods=1).mean(), label=label)
             random = m[m.key == "random_return"].value
             if len(random):
                 ax.axhline(float(random.iloc[0]), color=line.get_color(), ls="--", lw=1)
