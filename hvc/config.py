@@ -60,7 +60,8 @@ def _positive_int(cfg: DictConfig, key: str) -> None:
 def resolve_num_envs(cfg: DictConfig) -> None:
     """`num_envs=auto` becomes the number of cores, so run dirs record the number used."""
     if cfg.num_envs == "auto":
-        cfg.num_envs = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        cfg.num_envs = max(1, cores or 1)
 
 
 def validate(cfg: DictConfig) -> None:
