@@ -20,3 +20,16 @@ def quat_conj(q: np.ndarray) -> np.ndarray:
 def yaw_quat(yaw: float) -> np.ndarray:
     """Rotation by `yaw` radians about the world z axis."""
     return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Row-wise spherical interpolation of unit quaternions (N, 4) at fractions u (N,), shortest path."""
+    q1 = np.where((np.sum(q0 * q1, axis=1) < 0)[:, None], -q1, q1)
+    dot = np.clip(np.sum(q0 * q1, axis=1), -1.0, 1.0)
+    theta = np.arccos(dot)
+    small = theta < 1e-8
+    sin = np.where(small, 1.0, np.sin(theta))
+    w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * theta) / sin)
+    w1 = np.where(small, u, np.sin(u * theta) / sin)
+    q = w0[:, None] * q0 + w1[:, None] * q1
+    return q / np.linalg.norm(q, axis=1, keepdims=True)

@@ -54,3 +54,18 @@ def test_spliced_references_keep_each_behaviours_time_input(behaviours):
     joined = splice(stand, i, run, j)
     np.testing.assert_allclose(joined.phase[:i + 1], stand.phase[:i + 1])
     np.testing.assert_allclose(joined.phase[i + 1:], run.phase[j + 1:])
+
+
+def test_stand_to_run_ramps_the_speed_at_a_runners_acceleration(behaviours):
+    """A cut from standing into a run must not ask for 3 m/s within one step."""
+    stand, run = behaviours[0], behaviours[1]
+    i, j, _ = best_cut(stand, run, min_a=30)
+    max_accel = 4.0
+    joined = splice(stand, i, run, j, max_accel=max_accel)
+    own = max(np.abs(np.diff(r.velocity[:, :2], axis=0)).max() for r in (stand, run))
+    dv = np.linalg.norm(np.diff(joined.velocity[:, :2], axis=0), axis=1)
+    assert dv.max() <= max_accel * stand.dt + own
+    assert np.linalg.norm(joined.velocity[-1, :2]) > 2.0        # ... and it does end up running
+    # the root path is the integral of the stored velocity (no teleport at the ramp's end)
+    step = np.diff(joined.position[:, :2], axis=0) / stand.dt
+    np.testing.assert_allclose(step[i:i + 30], joined.velocity[i + 1:i + 31, :2], atol=0.3)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from hvc.lowlevel.tracking import TrackingLogic, build_reference
-from hvc.mocap.switching import markov_reference
+from hvc.mocap.switching import MAX_ACCEL, markov_reference
 
 
 class SwitchingTrackingLogic(TrackingLogic):
@@ -19,12 +19,14 @@ class SwitchingTrackingLogic(TrackingLogic):
                                            int(cfg.get("cycle_blend", 4))) for e in spec["entries"]]
         self.graph = {int(k): [int(v) for v in vs] for k, vs in spec["graph"].items()}
         self.steps = int(spec.get("steps") or 300)
+        self.max_accel = float(spec.get("max_accel", MAX_ACCEL))
         self.observation_size = 1 + len(self.behaviours)
         self.labels = np.zeros(self.behaviours[0].num_steps, np.int64)
         super().__init__(cfg, env, reference=self.behaviours[0])
 
     def reset(self, model, data, rng):
-        self.reference, self.labels = markov_reference(self.behaviours, self.graph, self.steps, rng)
+        self.reference, self.labels = markov_reference(self.behaviours, self.graph, self.steps, rng,
+                                                           max_accel=self.max_accel)
         super().reset(model, data, rng)
 
     def observation(self, model, data):

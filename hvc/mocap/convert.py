@@ -40,6 +40,7 @@ from dm_control.locomotion.walkers import cmu_humanoid
 
 from hvc.mocap.asf_amc import MocapFrames, load_amc
 from hvc.mocap.bvh import load_bvh
+from hvc.rotations import slerp
 
 #: dm_control `mocap_pb2.Walker.Model` values, recorded so a file says which body its poses are for.
 WALKER_MODELS: dict[str, int] = {"2019": 1, "2020": 4}
@@ -132,19 +133,6 @@ class WalkerPoser:
 
 
 # --------------------------------------------------------------------------- resampling
-def slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Row-wise spherical interpolation of unit quaternions (N, 4) at fractions u (N,), shortest path."""
-    q1 = np.where((np.sum(q0 * q1, axis=1) < 0)[:, None], -q1, q1)
-    dot = np.clip(np.sum(q0 * q1, axis=1), -1.0, 1.0)
-    theta = np.arccos(dot)
-    small = theta < 1e-8
-    sin = np.where(small, 1.0, np.sin(theta))
-    w0 = np.where(small, 1.0 - u, np.sin((1.0 - u) * theta) / sin)
-    w1 = np.where(small, u, np.sin(u * theta) / sin)
-    q = w0[:, None] * q0 + w1[:, None] * q1
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
 @dataclasses.dataclass(frozen=True)
 class Resampled:
     times: np.ndarray  # (T,) seconds from the first frame

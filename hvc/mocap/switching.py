@@ -3,8 +3,9 @@
 The paper cut its clips by hand to begin and end at similar points of the gait cycle.
 Here `best_cut` finds, for a transition a -> b, the pair of steps whose poses match best
 (joint angles, root height and heading-free orientation), `splice` joins the two
-references there (b moved and turned so its root continues from a's, joint angles
-blended linearly over a few steps), and `markov_reference` chains behaviours with a
+references there (b moved and turned so its root continues from a's, crossfaded
+with a's continuation long enough that the root speed ramps at a human's
+acceleration), and `markov_reference` chains behaviours with a
 Markov process over a graph of allowed transitions. The per-step behaviour index is the
 policy's 1-of-k input.
 """
@@ -17,7 +18,10 @@ import numpy as np
 
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference
-from hvc.rotations import quat_mul, yaw_quat
+from hvc.rotations import quat_mul, slerp, yaw_quat
+
+#: m/s^2, about a sprinter's start: the fastest root speed change a cut may ask for
+MAX_ACCEL = 4.0
 
 
 def _rot_z(angle: float) -> np.ndarray:
@@ -51,29 +55,59 @@ def best_cut(a: Reference, b: Reference, min_a: int = 1, max_b: int | None = Non
     return int(i), int(j), float(cost[i, j])
 
 
-def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4) -> Reference:
-    """a[:i+1] then b[j+1:], b moved so its root continues a's path with a's heading at the cut."""
+def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4, max_accel: float = MAX_ACCEL) -> Reference:
+    """a[:i+1] then b[j+1:], b moved so its root continues a's path with a's heading at the cut.
+
+    The first n steps of b are crossfaded with a's continuation (a's last step held if
+    it ends there): joints, height, orientation and end effectors blend, the horizontal
+    root velocity ramps from a's to b's and the path is integrated from it. n is `blend`,
+    or longer when the speeds differ: the ramp never accelerates the root by more than
+    `max_accel` m/s^2. Without it, stand -> run asked for 0 -> 3.4 m/s in one 0.03 s
+    step, which no body can track (the paper's animators smoothed such cuts by hand).
+    """
     ha, hb = root_heading(a.quaternion[[i]])[0], root_heading(b.quaternion[[j]])[0]
     turn = ha - hb
     rot = _rot_z(turn)
     tail = replace(b.segment(j + 1), phase=b.phase[j + 1:])  # keep b's own time input
-    offset = a.position[i] - rot @ b.position[j]
-    position = tail.position @ rot.T + offset
+    position = (tail.position - b.position[j]) @ rot.T + a.position[i]
     position[:, 2] = tail.position[:, 2]
     quaternion = np.array([quat_mul(yaw_quat(turn), q) for q in tail.quaternion])
-    joints = tail.joints.copy()
-    k = min(blend, len(joints))
-    w = (np.arange(1, k + 1) / (k + 1))[:, None]
-    joints[:k] = (1 - w) * a.joints[i] + w * joints[:k]  # ease from a's last pose into b
+    velocity = tail.velocity @ rot.T
+    joints, angular, ee = tail.joints.copy(), tail.angular_velocity.copy(), tail.end_effectors.copy()
+
+    speed_change = float(np.linalg.norm(velocity[0, :2] - a.velocity[i, :2]))
+    n = min(len(joints), max(blend, int(np.ceil(speed_change / (max_accel * a.dt)))))
+    if n > 0:
+        cont = np.minimum(np.arange(i + 1, i + 1 + n), a.num_steps - 1)  # a carried on
+        w = np.arange(1, n + 1) / (n + 1)
+        joints[:n] = _crossfade(a.joints[cont], joints[:n], w)
+        angular[:n] = _crossfade(a.angular_velocity[cont], angular[:n], w)
+        ee[:n] = _crossfade(a.end_effectors[cont], ee[:n], w)
+        quaternion[:n] = slerp(a.quaternion[cont], quaternion[:n], w)
+        velocity[:n] = _crossfade(a.velocity[cont], velocity[:n], w)
+        path = a.position[i, :2] + np.cumsum(velocity[:n, :2], axis=0) * a.dt
+        position[n:, :2] += path[-1] - position[n - 1, :2]  # b goes on from where the ramp ended
+        position[:n, :2] = path
+        position[:n, 2] = _crossfade(a.position[cont, 2], position[:n, 2], w)
     cat = lambda x, y: np.concatenate([x, y])  # noqa: E731
     head = _keep_phase(a, i + 1)
+    all_joints = cat(head.joints, joints)
+    joints_velocity = cat(head.joints_velocity, tail.joints_velocity)
+    window = slice(i + 1, i + 1 + n)  # blended joints move at the rate of the blend itself
+    joints_velocity[window] = np.gradient(all_joints, a.dt, axis=0)[window]
     return Reference(clip_id=f"{a.clip_id}+{b.clip_id}", dt=a.dt, cyclic=False,
-                     joints=cat(head.joints, joints), joints_velocity=cat(head.joints_velocity, tail.joints_velocity),
+                     joints=all_joints, joints_velocity=joints_velocity,
                      position=cat(head.position, position), quaternion=cat(head.quaternion, quaternion),
-                     velocity=cat(head.velocity, tail.velocity @ rot.T),
-                     angular_velocity=cat(head.angular_velocity, tail.angular_velocity),
-                     end_effectors=cat(head.end_effectors, tail.end_effectors),
+                     velocity=cat(head.velocity, velocity),
+                     angular_velocity=cat(head.angular_velocity, angular),
+                     end_effectors=cat(head.end_effectors, ee),
                      phase=cat(head.phase, tail.phase))  # each behaviour keeps its own time input
+
+
+def _crossfade(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(1 - w) x + w y row by row, w of shape (n,)."""
+    w = w.reshape(-1, *[1] * (x.ndim - 1))
+    return (1 - w) * x + w * y
 
 
 def _keep_phase(ref: Reference, end: int) -> Reference:
@@ -83,7 +117,7 @@ def _keep_phase(ref: Reference, end: int) -> Reference:
 
 def markov_reference(references: Sequence[Reference], graph: Mapping[int, Sequence[int]], steps: int,
                      rng: np.random.Generator, start: int | None = None, blend: int = 4,
-                     min_stay: int = 10) -> tuple[Reference, np.ndarray]:
+                     min_stay: int = 10, max_accel: float = MAX_ACCEL) -> tuple[Reference, np.ndarray]:
     """Chains behaviours by a Markov walk on `graph` (behaviour -> allowed next ones) until
     `steps` steps; each transition cut by `best_cut` after at least `min_stay` steps in the
     current behaviour. Returns the reference and the per-step behaviour index."""
@@ -94,7 +128,7 @@ def markov_reference(references: Sequence[Reference], graph: Mapping[int, Sequen
     while ref.num_steps < steps:
         nxt = int(rng.choice(list(graph[current])))
         i, j, _ = best_cut(ref, references[nxt], min_a=min(entered + min_stay, ref.num_steps - 1))
-        spliced = splice(ref, i, references[nxt], j, blend)
+        spliced = splice(ref, i, references[nxt], j, blend, max_accel)
         labels = np.concatenate([labels[:i + 1], np.full(spliced.num_steps - i - 1, nxt)])
         ref, current, entered = spliced, nxt, i + 1
     return ref.segment(0, steps), labels[:steps]

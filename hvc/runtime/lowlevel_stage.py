@@ -140,13 +140,14 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path):
         policy.load_state_dict(weights)
         tracking = cfg.task if cfg.task.kind == "tracking" else group_config("task", "tracking")
         if entry.id == "switching":  # the switching policy: one Markov walk over the set stands for it
-            from hvc.mocap.switching import markov_reference
+            from hvc.mocap.switching import MAX_ACCEL, markov_reference
 
             behaviours = [build_reference(e.as_dict(), str(mocap_file), int(tracking.cycle_repeats),
                                           int(tracking.cycle_blend))
                           for e in resolve(entries_of(cfg.clips), str(mocap_file))]
             graph = {int(k): list(v) for k, v in cfg.clips.switching.graph.items()}
-            reference, _ = markov_reference(behaviours, graph, int(entry.steps), np.random.default_rng(0))
+            reference, _ = markov_reference(behaviours, graph, int(entry.steps), np.random.default_rng(0),
+                                            max_accel=float(cfg.clips.switching.get("max_accel", MAX_ACCEL)))
         else:
             reference = build_reference(entry.as_dict(), str(mocap_file), int(tracking.cycle_repeats),
                                         int(tracking.cycle_blend))
