@@ -54,6 +54,10 @@ def _dispatch(cfg: DictConfig, run_dir: Path) -> dict:
         from hvc.runtime.hl_train import run_hl_training
 
         summary = run_hl_training(cfg, run_dir)
+    elif cfg.stage == "record":
+        from hvc.runtime.record import run_record
+
+        summary = run_record(cfg, run_dir)
     elif cfg.stage == "lowlevel":
         from hvc.runtime.lowlevel_stage import run_lowlevel
 

@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 GROUPS = ("body", "task", "controller", "algorithm", "clips", "reward", "render", "lowlevel")
-STAGES = ("rollout", "train", "info", "convert", "playback", "openloop", "lowlevel", "evaluate")
+STAGES = ("rollout", "train", "record", "info", "convert", "playback", "openloop", "lowlevel", "evaluate")
 MOCAP_STAGES = ("info", "convert", "playback", "openloop", "lowlevel", "evaluate")
 # Top-level keys that must be positive integers.
 POSITIVE_INTS = ("fragment_len", "total_steps", "log_every", "video_steps", "episodes")

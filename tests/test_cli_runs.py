@@ -172,23 +172,35 @@ def test_recorded_episodes_feed_the_transition_analysis(tmp_path):
     assert plot(run_dir, tmp_path / "t.png").stat().st_size > 1000
 
 
-def test_saliency_of_a_trained_agent_on_a_recorded_vision_episode(tmp_path):
+def test_saliency_of_a_trained_agent_on_episodes_recorded_after_training(tmp_path):
+    """stage=record plays a training run's checkpoint; its dir feeds the saliency analysis."""
+    import json
+
     import numpy as np
 
     path = _tiny_library(tmp_path / "lib.npz")
     _run("task=gaps", "stage=train", f"library={path}", "task.init_from_clips=false", "num_envs=1",
-         "total_steps=60", "record_episodes=1", "hl.random_episodes=0", "hl.min_replay_unrolls=2",
-         "algorithm.batch_size=2", "task.layout_pool=1", cwd=tmp_path)
-    [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
+         "total_steps=60", "hl.random_episodes=0", "hl.min_replay_unrolls=2",
+         "algorithm.batch_size=2", "task.layout_pool=1", "hydra.run.dir=train", cwd=tmp_path)
+    _run("stage=record", "from_run=train", "record_episodes=1", "hydra.run.dir=rec", cwd=tmp_path)
+    run_dir = tmp_path / "rec"
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["episodes"] == 1 and summary["trained_env_steps"] == 60
+    assert len(list((run_dir / "episodes").glob("episode_*.npz"))) == 1
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
     from saliency import load_agent, plot, saliency_maps
 
     with np.load(run_dir / "episodes" / "episode_0000.npz") as data:
         episode = {k: data[k] for k in data.files}
+    assert episode["reward"].sum() == pytest.approx(summary["mean_return"], abs=1e-4)
     steps, maps = saliency_maps(load_agent(run_dir), episode)
     assert len(steps) == int(episode["new_action"].sum()) and maps.shape[1:] == (64, 64)
     assert np.all((maps >= 0) & (maps <= 1)) and maps.max() == 1.0
     assert plot(run_dir, 0, tmp_path / "s.png").stat().st_size > 1000
+    # a dir that is not a training run is named in one line
+    bad = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=record", "from_run=rec", "record_episodes=1"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert bad.returncode == 2 and "stage=record plays stage=train runs" in bad.stderr
 
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),

@@ -31,6 +31,20 @@ class EpisodeRecorder:
         self._steps: dict[str, list] = {"hl_action": [], "new_action": [], "reward": [], "image": [],
                                         "proprio": [], "task": []}
 
+    @classmethod
+    def for_run(cls, cfg, run_dir: Path) -> "EpisodeRecorder":
+        """`cfg.record_episodes` episodes under run_dir/episodes, with fragments.csv beside them
+        when the actions are fragment indices."""
+        recorder = cls(run_dir / "episodes", int(cfg.record_episodes))
+        if recorder.active and cfg.controller.name in ("fragments", "query"):
+            from hvc.controllers.factory import library_path
+            from hvc.lowlevel.library import ExpertLibrary
+
+            write_fragment_table(run_dir / "fragments.csv",
+                                 ExpertLibrary.load(library_path(cfg.get("library"), str(cfg.clips.name))),
+                                 int(cfg.fragment_len))
+        return recorder
+
     @property
     def active(self) -> bool:
         return self.saved < self.max_episodes

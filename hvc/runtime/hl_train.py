@@ -36,7 +36,7 @@ from hvc.algorithms.hl_learners import ContinuousLearner, QueryLearner, pack_sta
 from hvc.envs.vector_env import VectorEnv
 from hvc.errors import ControllerUnavailable, HvcUserError
 from hvc.runtime.env_config import env_dicts
-from hvc.runtime.episodes import EpisodeRecorder, write_fragment_table
+from hvc.runtime.episodes import EpisodeRecorder
 from hvc.runtime.metrics import MetricsLogger
 from hvc.runtime.signals import raise_interrupt
 
@@ -98,11 +98,8 @@ class Unrolls:
         return out
 
 
-def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
-    torch.set_num_threads(1)
-    hl, agent_cfg = cfg.hl, cfg.task.agent
-    rng = np.random.default_rng(cfg.seed)
-    torch.manual_seed(cfg.seed)
+def make_envs(cfg: DictConfig) -> VectorEnv:
+    """`cfg.num_envs` actors of the task with the configured controller and its experts."""
     task, body, render = env_dicts(cfg)
     envs = VectorEnv(task, body, render, cfg.num_envs, seed=cfg.seed,
                      controller=OmegaConf.to_container(cfg.controller, resolve=True), library=cfg.get("library"),
@@ -110,13 +107,27 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     if envs.controller is None:
         envs.close()
         raise ControllerUnavailable(f"controller={cfg.controller.name} could not be built: {envs.why_no_controller}")
-    vision = "image" in envs.observation_sizes
+    return envs
+
+
+def load_checkpoint(path: Path) -> dict:
+    """A stage=train checkpoint, refusing one from before input normalisation in one line."""
+    state = torch.load(path, weights_only=True)
+    if "normalizer.mean" not in state["agent"]:
+        raise HvcUserError(f"{path} was written by an older hvc (before input normalisation and the "
+                           f"sigmoid-bounded sigma) and cannot be used; start a new run")
+    return state
+
+
+def build_agent(cfg: DictConfig, envs: VectorEnv) -> tuple[AgentSpec, HighLevelAgent, object | None]:
+    """The agent for the envs' controller and its learner (None for the discrete controllers,
+    whose V-trace update is a function): what training and recording both act with."""
+    agent_cfg = cfg.task.agent
     space = envs.action_space
-    discrete = space.discrete
     spec = AgentSpec(proprio_size=envs.observation_sizes["proprio"], task_size=envs.observation_sizes["task"],
-                     action_size=space.n if discrete else space.size, discrete=discrete,
-                     lstm_size=int(agent_cfg.lstm_size), value_mlp=tuple(agent_cfg.value_mlp), vision=vision,
-                     critic_takes_action=not discrete)
+                     action_size=space.n if space.discrete else space.size, discrete=space.discrete,
+                     lstm_size=int(agent_cfg.lstm_size), value_mlp=tuple(agent_cfg.value_mlp),
+                     vision="image" in envs.observation_sizes, critic_takes_action=not space.discrete)
     agent = HighLevelAgent(spec)
     if cfg.controller.name == "query":
         from hvc.controllers.factory import library_path
@@ -127,7 +138,52 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         learner = QueryLearner(agent, cfg.algorithm, cfg.controller, space,
                                QueryController(lib, int(cfg.controller.fragment_len), int(cfg.controller.k_nearest)))
     else:
-        learner = None if discrete else ContinuousLearner(agent, cfg.algorithm, cfg.controller, space)
+        learner = None if space.discrete else ContinuousLearner(agent, cfg.algorithm, cfg.controller, space)
+    return spec, agent, learner
+
+
+def act(agent: HighLevelAgent, learner, obs: dict, prev_reward: np.ndarray, prev_action: np.ndarray,
+        first: np.ndarray, lstm):
+    """One batched high-level step: (what the envs get, the action, log mu, new LSTM state,
+    the query or None). The envs get the selected key's fragment for `query`, else the action."""
+    with torch.no_grad():
+        logits, h_step, lstm = agent(
+            torch.from_numpy(obs["proprio"][None]).float(), torch.from_numpy(obs["task"][None]).float(),
+            torch.from_numpy(prev_reward[None]), torch.from_numpy(prev_action[None]), lstm,
+            image=torch.from_numpy(obs["image"][None]) if "image" in obs else None,
+            done=torch.from_numpy(first[None]))
+        if agent.spec.discrete:
+            dist = torch.distributions.Categorical(logits=logits[0])
+            action = dist.sample()
+            return action.numpy(), action.numpy(), dist.log_prob(action).numpy(), lstm, None
+        if isinstance(learner, QueryLearner):
+            send, query_action, action, log_mu = learner.act(logits[0], h_step[0])
+            return send, action, log_mu, lstm, query_action
+        action, log_mu = learner.sample(logits[0])
+        return action, action, log_mu, lstm, None
+
+
+def carry(action: np.ndarray, prev_action: np.ndarray, rewards: np.ndarray, dones: np.ndarray, infos):
+    """After a step: (new-action flags, the action in force: the new one only where the
+    controller took it, then the previous reward, previous action and episode-start flags
+    the agent sees next, zeroed where an episode ended)."""
+    new = np.array([float(i.get("new_action", False)) for i in infos], np.float32)
+    held = new.reshape(-1, *([1] * (action.ndim - 1))) > 0
+    in_force = np.where(held, action, prev_action)
+    next_action, next_reward = in_force.copy(), rewards.astype(np.float32)
+    next_action[dones], next_reward[dones] = 0, 0.0
+    return new, in_force, next_reward, next_action, dones.astype(np.float32)
+
+
+def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
+    torch.set_num_threads(1)
+    hl, agent_cfg = cfg.hl, cfg.task.agent
+    rng = np.random.default_rng(cfg.seed)
+    torch.manual_seed(cfg.seed)
+    envs = make_envs(cfg)
+    spec, agent, learner = build_agent(cfg, envs)
+    vision = spec.vision
+    discrete = spec.discrete
     query = isinstance(learner, QueryLearner)
     optimizer = torch.optim.Adam(agent.parameters(),
                                  lr=float(cfg.algorithm.learning_rate))
@@ -143,10 +199,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     update_credit = 0.0  # learner updates owed to the actors (algorithm.updates_per_unroll may be fractional)
     checkpoint = run_dir / "checkpoint.pt"
     if checkpoint.exists():
-        state = torch.load(checkpoint, weights_only=True)
-        if "normalizer.mean" not in state["agent"]:
-            raise HvcUserError(f"{checkpoint} was written by an older hvc (before input normalisation and the "
-                               f"sigmoid-bounded sigma) and cannot be resumed; start a new run")
+        state = load_checkpoint(checkpoint)
         agent.load_state_dict(state["agent"])
         optimizer.load_state_dict(state["optimizer"])
         for group in optimizer.param_groups:  # the configured rate, not the one saved with the optimiser
@@ -170,14 +223,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         os.replace(tmp, checkpoint)
 
     gamma, entropy_cost = float(agent_cfg.gamma), float(cfg.algorithm.get("entropy_cost", 0.01))
-    recorder = EpisodeRecorder(run_dir / "episodes", int(cfg.record_episodes))
-    if recorder.active and cfg.controller.name in ("fragments", "query"):
-        from hvc.controllers.factory import library_path
-        from hvc.lowlevel.library import ExpertLibrary
-
-        write_fragment_table(run_dir / "fragments.csv",
-                             ExpertLibrary.load(library_path(cfg.get("library"), str(cfg.clips.name))),
-                             int(cfg.fragment_len))
+    recorder = EpisodeRecorder.for_run(cfg, run_dir)
     metrics = MetricsLogger(run_dir / "metrics.csv", tensorboard=True)
     E = envs.num_envs
     obs = envs.reset()
@@ -209,40 +255,21 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 seq["prev_action"].append(prev_action.copy())
                 seq["first"].append(first.copy())
                 agent.normalizer.update(torch.from_numpy(np.concatenate([obs["proprio"], obs["task"]], -1)))
-                with torch.no_grad():
-                    logits, h_step, lstm = agent(
-                        torch.from_numpy(obs["proprio"][None]).float(), torch.from_numpy(obs["task"][None]).float(),
-                        torch.from_numpy(prev_reward[None]), torch.from_numpy(prev_action[None]), lstm,
-                        image=torch.from_numpy(obs["image"][None]) if vision else None,
-                        done=torch.from_numpy(first[None]))
-                    if discrete:
-                        dist = torch.distributions.Categorical(logits=logits[0])
-                        action = dist.sample()
-                        log_mu = dist.log_prob(action).numpy()
-                        action = action.numpy()
-                    elif query:
-                        send, query_action, action, log_mu = learner.act(logits[0], h_step[0])
-                    else:
-                        action, log_mu = learner.sample(logits[0])
+                send, action, log_mu, lstm, query_action = act(agent, learner, obs, prev_reward, prev_action,
+                                                               first, lstm)
                 before = {k: v[0] for k, v in obs.items()}
-                obs, rewards, discounts, dones, infos = envs.step(send if query else action)
+                obs, rewards, discounts, dones, infos = envs.step(send)
                 recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
-                new = np.array([float(i.get("new_action", False)) for i in infos], np.float32)
-                held = new.reshape(-1, *([1] * (action.ndim - 1))) > 0
-                in_force = np.where(held, action, prev_action)  # the action the controller is running
+                new, in_force, prev_reward, next_action, first = carry(action, prev_action, rewards, dones, infos)
                 if query:
-                    prev_query = np.where(held, query_action, prev_query)
+                    prev_query = np.where(new[:, None] > 0, query_action, prev_query)
                     seq["query"].append(prev_query.copy())
                 seq["action"].append(in_force)
                 seq["log_mu"].append(log_mu)
                 seq["reward"].append(rewards)
                 seq["discount"].append(discounts)
                 seq["new_action"].append(new)
-                prev_action = in_force.copy()
-                prev_reward = rewards.astype(np.float32)
-                first = dones.astype(np.float32)
-                prev_reward[dones] = 0.0
-                prev_action[dones] = 0
+                prev_action = next_action
                 for info in infos:
                     if "episode_return" in info:
                         returns.append(info["episode_return"])

@@ -1,0 +1,75 @@
+"""`stage=record`: play a trained high-level agent and record its episodes for the analyses.
+
+`record_episodes=N` during training saves the first N episodes, those of an untrained
+agent. This stage loads a training run's checkpoint with the config that run was trained
+with (`from_run=<run dir>`), plays its policy (sampling, as it acted in training) in one
+env and writes episodes/, fragments.csv and a copy of the checkpoint into its own run dir:
+the analysis scripts take this dir as they take a training run's.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from hvc.errors import HvcUserError
+from hvc.runtime.episodes import EpisodeRecorder
+from hvc.runtime.hl_train import act, build_agent, carry, load_checkpoint, make_envs
+
+log = logging.getLogger(__name__)
+
+
+def trained_config(cfg: DictConfig) -> DictConfig:
+    """The config `from_run` was trained with, playing `record_episodes` episodes in one env."""
+    if not cfg.get("from_run"):
+        raise HvcUserError("stage=record needs from_run=<run dir of a stage=train run>")
+    source = Path(cfg.from_run)
+    for name in ("checkpoint.pt", "config_resolved.yaml"):
+        if not (source / name).is_file():
+            raise HvcUserError(f"from_run={source} has no {name}: not a stage=train run dir")
+    trained = OmegaConf.load(source / "config_resolved.yaml")
+    if trained.stage != "train":
+        raise HvcUserError(f"from_run={source} is a stage={trained.stage} run; stage=record plays stage=train runs")
+    if int(cfg.record_episodes) <= 0:
+        raise HvcUserError(f"stage=record needs record_episodes=N with N > 0, got {cfg.record_episodes}")
+    return OmegaConf.merge(trained, {"num_envs": 1, "seed": int(cfg.seed),
+                                     "record_episodes": int(cfg.record_episodes)})
+
+
+def run_record(cfg: DictConfig, run_dir: Path) -> dict:
+    trained = trained_config(cfg)
+    source = Path(cfg.from_run)
+    state = load_checkpoint(source / "checkpoint.pt")
+    envs = make_envs(trained)
+    try:
+        spec, agent, learner = build_agent(trained, envs)
+        agent.load_state_dict(state["agent"])
+        agent.eval()
+        shutil.copy(source / "checkpoint.pt", run_dir / "checkpoint.pt")  # for analysis/saliency.py
+        recorder = EpisodeRecorder.for_run(trained, run_dir)
+        obs = envs.reset()
+        lstm = agent.initial_state(1)
+        prev_reward, first = np.zeros(1, np.float32), np.ones(1, np.float32)
+        prev_action = np.zeros(1, np.int64) if spec.discrete else np.zeros((1, spec.action_size), np.float32)
+        returns: list[float] = []
+        with tqdm(total=recorder.max_episodes, desc="record", unit="episode", disable=None) as bar:
+            while recorder.active:
+                send, action, _, lstm, _ = act(agent, learner, obs, prev_reward, prev_action, first, lstm)
+                before = {k: v[0] for k, v in obs.items()}
+                obs, rewards, _, dones, infos = envs.step(send)
+                recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
+                _, _, prev_reward, prev_action, first = carry(action, prev_action, rewards, dones, infos)
+                if "episode_return" in infos[0]:
+                    returns.append(float(infos[0]["episode_return"]))
+                    bar.update(1)
+                    bar.set_postfix(ret=f"{np.mean(returns):.1f}")
+    finally:
+        envs.close()
+    log.info("recorded %d episodes of %s (trained %d env steps): mean return %.2f", len(returns), source,
+             int(state["counters"]["env_steps"]), float(np.mean(returns)))
+    return {"from_run": str(source), "trained_env_steps": int(state["counters"]["env_steps"]),
+            "episodes": len(returns), "mean_return": float(np.mean(returns)), "returns": returns}
