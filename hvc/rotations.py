@@ -22,6 +22,13 @@ def yaw_quat(yaw: float) -> np.ndarray:
     return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
 
 
+def yaw_rotate(quaternions: np.ndarray, yaw) -> np.ndarray:
+    """yaw_quat(yaw) * q for each row of (N, 4) quaternions; `yaw` a scalar or (N,)."""
+    c, s = np.cos(np.asarray(yaw) / 2), np.sin(np.asarray(yaw) / 2)
+    w, x, y, z = np.asarray(quaternions, np.float64).T
+    return np.stack([c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w], axis=-1)
+
+
 def slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Row-wise spherical interpolation of unit quaternions (N, 4) at fractions u (N,), shortest path."""
     q1 = np.where((np.sum(q0 * q1, axis=1) < 0)[:, None], -q1, q1)

@@ -16,7 +16,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 from dm_control.locomotion.mocap import loader as mocap_loader
-from dm_control.utils import transformations as tr
 
 from hvc.errors import ClipNotFoundError  # noqa: F401  (raised here, re-exported)
 
@@ -66,8 +65,9 @@ def root_heading(quaternion: np.ndarray) -> np.ndarray:
     The root body's local z axis is the ASF root's forward (+Z) axis and stays horizontal
     for an upright walker, so its azimuth is the facing direction.
     """
-    fwd = np.stack([tr.quat_to_mat(q)[:3, 2] for q in np.asarray(quaternion)])
-    return np.unwrap(np.arctan2(fwd[:, 1], fwd[:, 0]))
+    w, x, y, z = np.asarray(quaternion, np.float64).T
+    fwd_x, fwd_y = 2 * (x * z + w * y), 2 * (y * z - w * x)  # third column of the rotation matrix
+    return np.unwrap(np.arctan2(fwd_y, fwd_x))
 
 
 def list_clips(h5_path: str | Path) -> list[str]:

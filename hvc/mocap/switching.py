@@ -18,7 +18,7 @@ import numpy as np
 
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference
-from hvc.rotations import quat_mul, slerp, yaw_quat
+from hvc.rotations import slerp, yaw_rotate
 
 #: m/s^2, about a sprinter's start: the fastest root speed change a cut may ask for
 MAX_ACCEL = 4.0
@@ -30,8 +30,7 @@ def _rot_z(angle: float) -> np.ndarray:
 
 
 def _heading_free(ref: Reference) -> np.ndarray:
-    heading = root_heading(ref.quaternion)
-    return np.array([quat_mul(yaw_quat(-h), q) for h, q in zip(heading, ref.quaternion)])
+    return yaw_rotate(ref.quaternion, -root_heading(ref.quaternion))
 
 
 def pose_distance(a: Reference, i: int, b: Reference, j: int) -> float:
@@ -44,15 +43,14 @@ def pose_distance(a: Reference, i: int, b: Reference, j: int) -> float:
 def best_cut(a: Reference, b: Reference, min_a: int = 1, max_b: int | None = None) -> tuple[int, int, float]:
     """(i, j, cost): leave a after step i (i >= min_a), enter b at step j (j < max_b)."""
     max_b = b.num_steps - 1 if max_b is None else max_b
+    a, b = a.segment(min_a), b.segment(0, max_b)  # only the admissible steps
     fa, fb = _heading_free(a), _heading_free(b)
     joint = np.abs(a.joints[:, None, :] - b.joints[None, :, :]).mean(-1)
     height = np.abs(a.position[:, None, 2] - b.position[None, :, 2])
     tilt = 1.0 - np.abs(fa @ fb.T)
     cost = joint + height + tilt
-    cost[:min_a, :] = np.inf
-    cost[:, max_b:] = np.inf
     i, j = np.unravel_index(np.argmin(cost), cost.shape)
-    return int(i), int(j), float(cost[i, j])
+    return int(i) + min_a, int(j), float(cost[i, j])
 
 
 def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4, max_accel: float = MAX_ACCEL) -> Reference:
@@ -71,7 +69,7 @@ def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4, max_accel
     tail = replace(b.segment(j + 1), phase=b.phase[j + 1:])  # keep b's own time input
     position = (tail.position - b.position[j]) @ rot.T + a.position[i]
     position[:, 2] = tail.position[:, 2]
-    quaternion = np.array([quat_mul(yaw_quat(turn), q) for q in tail.quaternion])
+    quaternion = yaw_rotate(tail.quaternion, turn)
     velocity = tail.velocity @ rot.T
     joints, angular, ee = tail.joints.copy(), tail.angular_velocity.copy(), tail.end_effectors.copy()
 
