@@ -1,0 +1,33 @@
+"""Learning-curve statistics: returns averaged per episode, not per log row."""
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
+from plot_training import mean_return, plot  # noqa: E402
+
+
+def _metrics():
+    rows = []
+    # row at 100 env steps: 3 short episodes with nothing; at 200: one long episode scoring 100;
+    # at 300: no episode ended (no return logged)
+    for env_steps, episodes, ret in ((100, 3, 0.0), (200, 4, 100.0), (300, 4, None)):
+        rows.append((env_steps, env_steps * 10, 1.0, "episodes", episodes))
+        if ret is not None:
+            rows.append((env_steps, env_steps * 10, 1.0, "episode_return", ret))
+    rows.append((0, 0, 0.0, "random_return", 1.0))
+    return pd.DataFrame(rows, columns=["env_steps", "learner_steps", "wall_time", "key", "value"])
+
+
+def test_mean_return_weights_each_episode_once():
+    m = _metrics()
+    assert mean_return(m) == pytest.approx(25.0)           # 100 / 4 episodes, not (0 + 100) / 2 rows
+    assert mean_return(m, lo=150) == pytest.approx(100.0)
+
+
+def test_plot_reads_a_gzipped_metrics_file(tmp_path):
+    path = tmp_path / "metrics_run.csv.gz"
+    _metrics().to_csv(path, index=False)
+    assert plot(tmp_path / "c.png", [path]).stat().st_size > 1000
