@@ -69,3 +69,35 @@ def test_stand_to_run_ramps_the_speed_at_a_runners_acceleration(behaviours):
     # the root path is the integral of the stored velocity (no teleport at the ramp's end)
     step = np.diff(joined.position[:, :2], axis=0) / stand.dt
     np.testing.assert_allclose(step[i:i + 30], joined.velocity[i + 1:i + 31, :2], atol=0.3)
+
+
+def test_pretraining_labels_follow_each_episodes_own_walk():
+    """Each reset draws a new Markov walk: behaviour-cloning labels must come from it, not
+    from the walk that was current when the dataset began (a 0.23 mean action error)."""
+    from omegaconf import OmegaConf
+
+    from conftest import plain_cfg
+    from hvc.config import compose
+    from hvc.envs.fast_env import FastEnv
+    from hvc.lowlevel.train import perturbed_dataset
+    from hvc.mocap.clip_sets import entries_of, resolve
+    from hvc.mocap.source import find_mocap_file
+
+    mocap = str(find_mocap_file(None, "2019"))
+    overrides = ("stage=lowlevel", "task=tracking", "clips=switching")
+    cfg = compose(list(overrides))
+    task, body, render = plain_cfg(*overrides)
+    task.update(clip={"switching": True, "entries": [e.as_dict() for e in resolve(entries_of(cfg.clips), mocap)],
+                      **OmegaConf.to_container(cfg.clips.switching, resolve=True)}, mocap_file=mocap)
+    env = FastEnv.build(task, body, render, seed=0)
+    logic, step, expected = env.layout.logic, env.step, []
+
+    def watched_step(action):
+        ref = logic.reference
+        expected.append(np.clip(logic.pose_to_actuation(ref.joints[min(logic.t + 1, ref.num_steps - 1)]), -1, 1))
+        return step(action)
+
+    env.step = watched_step
+    _, labels = perturbed_dataset(env, 4, 0.1, np.random.default_rng(0))
+    env.close()
+    np.testing.assert_allclose(labels, np.asarray(expected, np.float32), atol=1e-6)

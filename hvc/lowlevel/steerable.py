@@ -14,6 +14,7 @@ from hvc.mocap.steering import steer_cycle
 
 class SteerableTrackingLogic(TrackingLogic):
     observation_size = 2
+    reference_per_episode = True
 
     def __init__(self, cfg, env):
         super().__init__(cfg, env)

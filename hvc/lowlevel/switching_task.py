@@ -13,6 +13,7 @@ from hvc.mocap.switching import MAX_ACCEL, markov_reference
 
 
 class SwitchingTrackingLogic(TrackingLogic):
+    reference_per_episode = True
     def __init__(self, cfg, env):
         spec = cfg["clip"]  # {"switching": True, "entries": [...], "graph": {...}, "steps": n}
         self.behaviours = [build_reference(e, cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)),

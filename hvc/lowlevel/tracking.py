@@ -46,6 +46,7 @@ def build_reference(entry: Mapping[str, Any], mocap_file: str, cycle_repeats: in
 
 class TrackingLogic(TaskLogic):
     observation_size = 1
+    reference_per_episode = False  # True where each reset draws a new reference
 
     def __init__(self, cfg: Mapping[str, Any], env, reference: Reference | None = None):
         task, physics = env.task, env.physics

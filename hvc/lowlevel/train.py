@@ -37,17 +37,20 @@ class NonFiniteLoss(RuntimeError):
     pass
 
 
-def reference_dataset(env: FastEnv) -> tuple[np.ndarray, np.ndarray]:
-    """(observations of the reference states s*_t, actions reaching q*_{t+1}), t < T-1."""
+def reference_dataset(env: FastEnv, walks: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """(observations of the reference states s*_t, actions reaching q*_{t+1}), t < T-1, over
+    `walks` references when each episode draws its own (steered cycles, Markov walks)."""
     logic = env.layout.logic
-    ref = logic.reference
     obs, actions = [], []
-    for t in range(ref.num_steps - 1):
-        logic.set_reference_state(env.data, t)
-        mujoco.mj_forward(env.model, env.data)
-        logic.t = t
-        obs.append(policy_observation(env.observation()))
-        actions.append(np.clip(logic.pose_to_actuation(ref.joints[t + 1]), -1, 1))
+    for _ in range(walks if logic.reference_per_episode else 1):
+        env.reset()
+        ref = logic.reference
+        for t in range(ref.num_steps - 1):
+            logic.set_reference_state(env.data, t)
+            mujoco.mj_forward(env.model, env.data)
+            logic.t = t
+            obs.append(policy_observation(env.observation()))
+            actions.append(np.clip(logic.pose_to_actuation(ref.joints[t + 1]), -1, 1))
     return np.asarray(obs, np.float32), np.asarray(actions, np.float32)
 
 
@@ -57,10 +60,10 @@ def perturbed_dataset(env: FastEnv, episodes: int, sigma: float,
     random starts, each labelled with the reference's next pose at its time index: the
     pre-trained policy then sees the states it will meet, not only the reference's."""
     logic = env.layout.logic
-    ref = logic.reference
     obs_list, actions = [], []
     for _ in range(episodes):
         obs, done = env.reset(), False
+        ref = logic.reference  # the reset may have drawn a new one
         while not done:
             target = np.clip(logic.pose_to_actuation(ref.joints[min(logic.t + 1, ref.num_steps - 1)]), -1, 1)
             obs_list.append(policy_observation(obs))
