@@ -102,3 +102,20 @@ def test_running_normalizer_matches_the_statistics_of_all_inputs_seen():
     first = RunningNormalizer(1)
     first.update(torch.tensor([[1.0]]))  # one sample: zero variance
     assert abs(float(first(torch.tensor([[1.01]])))) < 0.2  # a small deviation stays small
+
+
+def test_normalizer_floor_travels_with_the_weights():
+    """A trained agent must read its inputs through the floor it was trained with."""
+    from hvc.agents.network import RunningNormalizer
+
+    trained = RunningNormalizer(1, var_floor=1e-6)
+    trained.update(torch.tensor([[0.0], [0.002]]))  # variance 1e-6
+    x = torch.tensor([[0.002]])
+    restored = RunningNormalizer(1)  # today's default floor
+    restored.load_state_dict(trained.state_dict())
+    torch.testing.assert_close(restored(x), trained(x))
+    assert float(trained(x)) > 0.5 and abs(float(RunningNormalizer.DEFAULT_VAR_FLOOR)) > 1e-3
+    # a state saved before the floor was recorded loads with the default floor
+    old = {k: v for k, v in trained.state_dict().items() if k != "var_floor"}
+    restored.load_state_dict(old)
+    assert float(restored.var_floor) == RunningNormalizer.DEFAULT_VAR_FLOOR

@@ -31,7 +31,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from hvc.agents.network import AgentSpec, HighLevelAgent
+from hvc.agents.network import AgentSpec, HighLevelAgent, RunningNormalizer
 from hvc.algorithms.hl_learners import ContinuousLearner, QueryLearner, pack_state, vtrace_update
 from hvc.envs.vector_env import VectorEnv
 from hvc.errors import ControllerUnavailable, HvcUserError
@@ -116,6 +116,9 @@ def load_checkpoint(path: Path) -> dict:
     if "normalizer.mean" not in state["agent"]:
         raise HvcUserError(f"{path} was written by an older hvc (before input normalisation and the "
                            f"sigmoid-bounded sigma) and cannot be used; start a new run")
+    if "normalizer.var_floor" not in state["agent"]:
+        log.warning("%s does not record its input normaliser's variance floor; assuming %g (hvc since "
+                    "2026-12-01 20:17; 1e-6 before)", path, RunningNormalizer.DEFAULT_VAR_FLOOR)
     return state
 
 
