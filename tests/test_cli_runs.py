@@ -222,6 +222,10 @@ def test_structured_policy_trains_ships_and_evaluates(tmp_path, clips, line):
     else:
         attempted = int(re.search(r"of (\d+)", out).group(1))
         assert attempted > 0  # the walks switch behaviours within the episodes
+        from hvc.lowlevel.library import ExpertLibrary
+
+        behaviours = ExpertLibrary.load(library).behaviours  # carried along: no mocap file needed to use it
+        assert [b.clip_id for b in behaviours] == ["CMU_131_09", "CMU_009_06", "CMU_016_41", "CMU_016_43"]
 
 
 def test_resuming_a_checkpoint_of_an_older_format_fails_in_one_line(tmp_path):

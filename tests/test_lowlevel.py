@@ -127,6 +127,12 @@ def test_library_round_trip_without_pickle(tmp_path):
     np.testing.assert_allclose(loaded.experts[0].reference.end_effectors, lib.experts[0].reference.end_effectors,
                                atol=1e-6)
     assert loaded.clip_ids == ["CMU_000_01"] and loaded.experts[0].scores == {"eval_reward": 0.5}
+    assert loaded.behaviours == [] and "behaviours" not in loaded.meta
+    # a switching library carries its behaviours' references (offline use)
+    lib.behaviours = [lib.experts[0].reference.segment(0, 3), lib.experts[0].reference]
+    loaded = ExpertLibrary.load(lib.save(tmp_path / "switching.npz"))
+    assert [b.num_steps for b in loaded.behaviours] == [3, 5]
+    np.testing.assert_allclose(loaded.behaviours[1].joints, lib.behaviours[1].joints, atol=1e-6)
     with np.load(path, allow_pickle=False) as data:  # plain arrays: no pickle needed anywhere
         assert json.loads(str(data["meta"]))["version"] == 1
 

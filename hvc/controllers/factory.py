@@ -47,7 +47,10 @@ def build_controller(controller: Mapping[str, Any], env, library: str | None = N
 
 
 def _behaviours(lib) -> list:
-    """The switching policy's behaviour references, rebuilt from the entries it was trained on."""
+    """The switching policy's behaviour references: stored in the library, or (libraries made
+    before they were) rebuilt from the entries it was trained on."""
+    if lib.behaviours:
+        return lib.behaviours
     from hvc.lowlevel.tracking import build_reference
     from hvc.mocap.source import find_mocap_file
 

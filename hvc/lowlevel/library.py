@@ -45,6 +45,9 @@ class Expert:
 class ExpertLibrary:
     experts: list[Expert]
     meta: dict[str, Any]
+    # the switching policy's k behaviour references: its controller and evaluation need
+    # them, and a shipped library must work without the mocap files
+    behaviours: list[Reference] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.experts)
@@ -63,7 +66,11 @@ class ExpertLibrary:
             arrays[f"e{i}/obs_std"] = 1.0 / e.policy.inv_std
             for name in REFERENCE_FIELDS:
                 arrays[f"e{i}/ref/{name}"] = np.asarray(getattr(e.reference, name), np.float32)
+        for k, ref in enumerate(self.behaviours):
+            for name in REFERENCE_FIELDS:
+                arrays[f"b{k}/ref/{name}"] = np.asarray(getattr(ref, name), np.float32)
         meta = {**self.meta, "version": LIBRARY_VERSION,
+                "behaviours": [{"id": r.clip_id, "dt": r.dt, "cyclic": r.cyclic} for r in self.behaviours],
                 "experts": [{"entry": e.entry, "scores": e.scores, "layers": len(e.policy.weights),
                              "dt": e.reference.dt, "cyclic": e.reference.cyclic} for e in self.experts]}
         arrays["meta"] = np.array(json.dumps(meta))
@@ -88,7 +95,11 @@ class ExpertLibrary:
                 ref = Reference(clip_id=info["entry"]["id"], dt=float(info["dt"]), cyclic=bool(info["cyclic"]),
                                 **{name: data[f"e{i}/ref/{name}"].astype(np.float64) for name in REFERENCE_FIELDS})
                 experts.append(Expert(info["entry"], policy, ref, info.get("scores", {})))
-        return cls(experts, {k: v for k, v in meta.items() if k != "experts"})
+            behaviours = [Reference(clip_id=info["id"], dt=float(info["dt"]), cyclic=bool(info["cyclic"]),
+                                    **{name: data[f"b{k}/ref/{name}"].astype(np.float64)
+                                       for name in REFERENCE_FIELDS})
+                          for k, info in enumerate(meta.get("behaviours", []))]
+        return cls(experts, {k: v for k, v in meta.items() if k not in ("experts", "behaviours")}, behaviours)
 
 
 def code_version() -> str:

@@ -16,8 +16,10 @@ class SwitchingTrackingLogic(TrackingLogic):
     reference_per_episode = True
     def __init__(self, cfg, env):
         spec = cfg["clip"]  # {"switching": True, "entries": [...], "graph": {...}, "steps": n}
-        self.behaviours = [build_reference(e, cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)),
-                                           int(cfg.get("cycle_blend", 4))) for e in spec["entries"]]
+        # the behaviours' references: given (from a library), or built from the mocap file
+        self.behaviours = spec.get("behaviours") or [
+            build_reference(e, cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)), int(cfg.get("cycle_blend", 4)))
+            for e in spec["entries"]]
         self.graph = {int(k): [int(v) for v in vs] for k, vs in spec["graph"].items()}
         self.steps = int(spec.get("steps") or 300)
         self.max_accel = float(spec.get("max_accel", MAX_ACCEL))

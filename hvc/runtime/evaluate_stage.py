@@ -38,7 +38,10 @@ def expert_env(cfg: DictConfig, expert, library: ExpertLibrary):
             raise HvcUserError("this switching library does not record its transition graph (meta 'switching'); "
                              "reassemble it with `hvc-run stage=lowlevel clips=switching resume=<run dir>`")
         task["clip"] = {"switching": True, "entries": library.meta["switching_entries"], **library.meta["switching"]}
-        task["mocap_file"] = str(find_mocap_file(cfg.mocap_file, str(cfg.body.get("model_version", "2019"))))
+        if library.behaviours:
+            task["clip"]["behaviours"] = library.behaviours
+        else:
+            task["mocap_file"] = str(find_mocap_file(cfg.mocap_file, str(cfg.body.get("model_version", "2019"))))
     else:
         task["reference"] = expert.reference
     return FastEnv.build(task, body, render, seed=cfg.seed, render=False)

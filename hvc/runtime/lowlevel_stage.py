@@ -129,7 +129,7 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path):
     from hvc.lowlevel.library import Expert, ExpertLibrary, provenance
     from hvc.lowlevel.tracking import build_reference
 
-    experts, steps = [], []
+    experts, steps, behaviours = [], [], []
     for i, entry in enumerate(entries):
         out = expert_dir(run_dir, i, entry)
         state = torch.load(out / "checkpoint.pt", weights_only=True)
@@ -160,7 +160,7 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path):
                if cfg.clips.get("switching") else {}),
             "hidden": list(cfg.lowlevel.hidden), "control_timestep": float(cfg.task.control_timestep),
             "provenance": provenance(steps, {"mocap_file": str(mocap_file), "training_command": _training_command(run_dir)})}
-    return ExpertLibrary(experts, meta)
+    return ExpertLibrary(experts, meta, behaviours)
 
 
 def _training_command(run_dir: Path) -> str:
