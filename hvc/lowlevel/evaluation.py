@@ -62,19 +62,19 @@ def steering_response(env: FastEnv, act: Callable[[dict, object], np.ndarray], r
                       cycles: int = 8, settle_steps: int = 10) -> list[dict[str, float]]:
     """Commanded vs achieved turning rate of the steerable policy (Sec. 2.2 evaluation).
 
-    Each commanded rate is held for all `cycles` gait cycles of the episode; the achieved
-    rate is the slope of the body's unwrapped heading after `settle_steps` (a linear fit
-    spans the gait's own sway). Episodes too short after settling (late random starts,
-    early falls) give no rate but still count for completion.
+    Each episode starts at the steered reference's first step and holds the commanded rate
+    for all `cycles` gait cycles; the achieved rate is the slope of the body's unwrapped
+    heading after `settle_steps` (a linear fit spans the gait's own sway). Episodes too
+    short after settling (early falls) give no rate but still count for completion.
     """
     from hvc.mocap.clips import root_heading
 
     logics = [layout.logic for layout in env.layouts]
-    saved_cycles = [logic.cycles for logic in logics]
+    saved = [(logic.cycles, logic.random_start) for logic in logics]
     rows = []
     try:
         for logic in logics:
-            logic.cycles = int(cycles)
+            logic.cycles, logic.random_start = int(cycles), False
         for rate in rates:
             for logic in logics:
                 logic.held_rate = float(rate)
@@ -97,8 +97,8 @@ def steering_response(env: FastEnv, act: Callable[[dict, object], np.ndarray], r
                          "achieved_rate": float(np.mean(achieved)) if achieved else float("nan"),
                          "completion": float(np.mean(completion)), "fall_rate": float(np.mean(fell))})
     finally:
-        for logic, n in zip(logics, saved_cycles):
-            logic.held_rate, logic.cycles = None, n
+        for logic, (n, random_start) in zip(logics, saved):
+            logic.held_rate, logic.cycles, logic.random_start = None, n, random_start
     return rows
 
 
