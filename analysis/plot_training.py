@@ -17,8 +17,14 @@ import pandas as pd  # noqa: E402
 
 def episode_returns(metrics: pd.DataFrame) -> pd.DataFrame:
     """Per log row: env_steps, learner_steps, the mean return of the episodes that ended since
-    the previous row and how many they were (`n`)."""
-    rows = metrics.pivot_table(index=["env_steps", "learner_steps"], columns="key", values="value").reset_index()
+    the previous row and how many they were (`n`). A resumed run logs again from its last
+    checkpoint: the rows it superseded are dropped, so each episode counts once."""
+    m = metrics[metrics.key.isin(["episodes", "episode_return"])].reset_index(drop=True)
+    row = (m[["env_steps", "learner_steps", "wall_time"]].diff().abs().sum(axis=1) != 0).cumsum()
+    rows = m.pivot_table(index=row, columns="key", values="value", sort=True)
+    rows[["env_steps", "learner_steps"]] = m.groupby(row)[["env_steps", "learner_steps"]].first()
+    later_min = rows.env_steps.astype(float)[::-1].cummin()[::-1].shift(-1, fill_value=float("inf"))
+    rows = rows[rows.env_steps < later_min]  # keep only the last timeline after each resume
     rows["n"] = rows["episodes"].ffill().diff().fillna(rows["episodes"])
     rows = rows.dropna(subset=["episode_return"])
     return rows[["env_steps", "learner_steps", "episode_return", "n"]].rename(columns={"episode_return": "value"})

@@ -102,29 +102,53 @@ def test_rolling_ball_on_go_to_target():
     assert np.isfinite(obs["proprio"]).all() and reward in (0.0, 1.0)
 
 
-@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
-                    reason="offline CMU clips not found")
-@pytest.mark.parametrize("task_name", ["walls", "forage"])
-def test_episodes_start_from_poses_of_the_clip_set(task_name):
-    from hvc.config import compose
+def _starts(reset, env, placement, n=8):
     from hvc.mocap.clips import root_heading
-    from hvc.runtime.env_config import env_dicts
 
-    task, body, render = env_dicts(compose([f"task={task_name}", "task.layout_pool=1"]))
-    assert task["init_clips"] and task["mocap_file"]
-    env = FastEnv.build(task, body, render, seed=0, render=False)
-    placement = env.layout.logic.placement
-    bank = placement.pose_bank
-    headings, matched = [], 0
-    for _ in range(8):
-        env.reset()
+    bank, headings, matched = placement.pose_bank, [], 0
+    for _ in range(n):
+        reset()
         joints = env.data.qpos[placement.joint_qpos]
         matched += bool(np.isclose(bank.joints, joints, atol=1e-9).all(axis=1).any())
         headings.append(root_heading(env.data.qpos[3:7][None])[0])
         assert 0.5 < env.data.qpos[2] < 1.3
+    return matched, headings
+
+
+@pytest.mark.parametrize("task_name", ["walls", "forage"])
+def test_controlled_episodes_start_from_poses_of_the_controllers_skills(task_name):
+    """The shipped library's references are the pose bank: no mocap file needed."""
+    from hvc.config import compose
+    from hvc.controllers.base import ControlledEnv
+    from hvc.controllers.factory import build_controller
+    from hvc.runtime.env_config import env_dicts
+
+    cfg = compose([f"task={task_name}", "task.layout_pool=1"])
+    task, body, render = env_dicts(cfg)
+    assert "init_clips" not in task  # the controller, not the mocap file, supplies the poses
+    env = FastEnv.build(task, body, render, seed=0, render=False)
+    controller = build_controller(dict(cfg.controller), env, None, "go_to_target")
+    driven = ControlledEnv(env, controller)
+    placement = env.layout.logic.placement
+    assert len(placement.pose_bank) == sum(e.reference.num_steps for e in controller.library.experts)
+    matched, headings = _starts(driven.reset, env, placement)
     env.close()
-    assert matched == 8  # every start is a mocap pose of the set
+    assert matched == 8  # every start is a pose the experts track
     if task_name == "walls":
         np.testing.assert_allclose(headings, 0.0, atol=1e-9)  # facing down the corridor
     else:
         assert np.ptp(headings) > 1.0  # the maze spawns with random headings
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+def test_end_to_end_episodes_start_from_poses_of_the_clip_set():
+    from hvc.config import compose
+    from hvc.runtime.env_config import env_dicts
+
+    task, body, render = env_dicts(compose(["task=forage", "task.layout_pool=1", "controller=end_to_end"]))
+    assert task["init_clips"] and task["mocap_file"]
+    env = FastEnv.build(task, body, render, seed=0, render=False)
+    matched, _ = _starts(env.reset, env, env.layout.logic.placement)
+    env.close()
+    assert matched == 8

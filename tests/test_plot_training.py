@@ -31,3 +31,16 @@ def test_plot_reads_a_gzipped_metrics_file(tmp_path):
     path = tmp_path / "metrics_run.csv.gz"
     _metrics().to_csv(path, index=False)
     assert plot(tmp_path / "c.png", [path]).stat().st_size > 1000
+
+
+def test_a_resumed_run_counts_each_episode_once():
+    """A resumed run logs again from its checkpoint (here 100), superseding rows 200 and 300."""
+    first = [(100, 3, 0.0), (200, 4, 100.0), (300, 6, 0.0)]
+    resumed = [(200, 5, 10.0), (300, 7, 0.0)]  # the checkpoint was at 100 with 3 episodes
+    rows = []
+    for wall, (env_steps, episodes, ret) in enumerate(first + resumed):
+        rows.append((env_steps, env_steps, float(wall), "episodes", episodes))
+        rows.append((env_steps, env_steps, float(wall), "episode_return", ret))
+    m = pd.DataFrame(rows, columns=["env_steps", "learner_steps", "wall_time", "key", "value"])
+    # timeline kept: 100 (3 episodes, 0), 200 (2 episodes, 10 each), 300 (2 episodes, 0)
+    assert mean_return(m) == pytest.approx(20.0 / 7)

@@ -69,17 +69,17 @@ def test_stand_to_run_ramps_the_speed_at_a_runners_acceleration(behaviours):
     # the root path is the integral of the stored velocity (no teleport at the ramp's end)
     step = np.diff(joined.position[:, :2], axis=0) / stand.dt
     np.testing.assert_allclose(step[i:i + 30], joined.velocity[i + 1:i + 31, :2], atol=0.3)
+    with pytest.raises(ValueError, match="max_accel"):
+        splice(stand, i, run, j, max_accel=0.0)
 
 
-def test_pretraining_labels_follow_each_episodes_own_walk():
-    """Each reset draws a new Markov walk: behaviour-cloning labels must come from it, not
-    from the walk that was current when the dataset began (a 0.23 mean action error)."""
+@pytest.fixture()
+def switching_env():
     from omegaconf import OmegaConf
 
     from conftest import plain_cfg
     from hvc.config import compose
     from hvc.envs.fast_env import FastEnv
-    from hvc.lowlevel.train import perturbed_dataset
     from hvc.mocap.clip_sets import entries_of, resolve
     from hvc.mocap.source import find_mocap_file
 
@@ -90,6 +90,16 @@ def test_pretraining_labels_follow_each_episodes_own_walk():
     task.update(clip={"switching": True, "entries": [e.as_dict() for e in resolve(entries_of(cfg.clips), mocap)],
                       **OmegaConf.to_container(cfg.clips.switching, resolve=True)}, mocap_file=mocap)
     env = FastEnv.build(task, body, render, seed=0)
+    yield env
+    env.close()
+
+
+def test_pretraining_labels_follow_each_episodes_own_walk(switching_env):
+    """Each reset draws a new Markov walk: behaviour-cloning labels must come from it, not
+    from the walk that was current when the dataset began (a 0.23 mean action error)."""
+    from hvc.lowlevel.train import perturbed_dataset, reference_dataset
+
+    env = switching_env
     logic, step, expected = env.layout.logic, env.step, []
 
     def watched_step(action):
@@ -99,5 +109,10 @@ def test_pretraining_labels_follow_each_episodes_own_walk():
 
     env.step = watched_step
     _, labels = perturbed_dataset(env, 4, 0.1, np.random.default_rng(0))
-    env.close()
     np.testing.assert_allclose(labels, np.asarray(expected, np.float32), atol=1e-6)
+    # the reference states come from several walks, each labelled with its own next poses
+    obs, actions = reference_dataset(env, walks=3)
+    assert len(obs) == 3 * (logic.reference.num_steps - 1)
+    last = logic.reference  # the third walk's
+    next_poses = np.stack([np.clip(logic.pose_to_actuation(q), -1, 1) for q in last.joints[-5:]])
+    np.testing.assert_allclose(actions[-5:], next_poses, atol=1e-6)

@@ -40,6 +40,13 @@ class ControlledEnv:
     def __init__(self, env, controller: Controller):
         self.env, self.controller = env, controller
         self.obs: dict[str, np.ndarray] | None = None
+        references = getattr(controller, "start_references", ())
+        if references and env.task_cfg.get("init_from_clips"):
+            # the paper starts tasks from mocap poses: those the controller's own skills track
+            # (a steerable policy from its run cycle), stored in its library, so no mocap file is needed
+            from hvc.mocap.pose_bank import PoseBank
+
+            env.set_start_poses(PoseBank.from_references(references))
 
     @property
     def action_space(self) -> ActionSpace:

@@ -27,6 +27,10 @@ class SteerableController:
         self.action_space = ActionSpace(discrete=False, size=1, low=self.low, high=self.high)
         self.rate, self.step = 0.0, self.cycle
 
+    @property
+    def start_references(self) -> list:
+        return [self.expert.reference]
+
     def reset(self) -> None:
         self.rate, self.step = 0.0, self.cycle
 
@@ -59,6 +63,10 @@ class SwitchingController:
         self.hold = int(hold_steps)
         self.action_space = ActionSpace(discrete=True, n=len(behaviours))
         self.current, self.t, self.held = None, 0, self.hold
+
+    @property
+    def start_references(self) -> list:
+        return list(self.behaviours)
 
     def reset(self) -> None:
         self.current, self.t, self.held = None, 0, self.hold

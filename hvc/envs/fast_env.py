@@ -112,13 +112,17 @@ class FastEnv:
             env.reset()  # composer compiles a fresh layout
             layouts.append(layout_from_composer(env, task, body))
         env.close()
+        fast = cls(layouts, task, body, render_settings, seed, render)
         if task.get("init_clips"):
             from hvc.mocap.pose_bank import PoseBank
 
-            bank = PoseBank.from_entries(task["init_clips"], task["mocap_file"])
-            for layout in layouts:
-                layout.logic.placement.pose_bank = bank
-        return cls(layouts, task, body, render_settings, seed, render)
+            fast.set_start_poses(PoseBank.from_entries(task["init_clips"], task["mocap_file"]))
+        return fast
+
+    def set_start_poses(self, bank) -> None:
+        """Episodes start from poses of `bank` (a PoseBank), on every layout."""
+        for layout in self.layouts:
+            layout.logic.placement.pose_bank = bank
 
     @classmethod
     def from_composer(cls, env, task, body, render_settings=None, seed: int = 0,

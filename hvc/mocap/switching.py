@@ -33,13 +33,6 @@ def _heading_free(ref: Reference) -> np.ndarray:
     return yaw_rotate(ref.quaternion, -root_heading(ref.quaternion))
 
 
-def pose_distance(a: Reference, i: int, b: Reference, j: int) -> float:
-    """Mean absolute joint-angle difference + root height and heading-free tilt differences."""
-    qa, qb = _heading_free(a.segment(i, i + 1))[0], _heading_free(b.segment(j, j + 1))[0]
-    tilt = 1.0 - abs(float(qa @ qb))
-    return float(np.mean(np.abs(a.joints[i] - b.joints[j])) + abs(a.position[i, 2] - b.position[j, 2]) + tilt)
-
-
 def best_cut(a: Reference, b: Reference, min_a: int = 1, max_b: int | None = None) -> tuple[int, int, float]:
     """(i, j, cost): leave a after step i (i >= min_a), enter b at step j (j < max_b)."""
     max_b = b.num_steps - 1 if max_b is None else max_b
@@ -54,7 +47,11 @@ def best_cut(a: Reference, b: Reference, min_a: int = 1, max_b: int | None = Non
 
 
 def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4, max_accel: float = MAX_ACCEL) -> Reference:
-    """a[:i+1] then b[j+1:], b moved so its root continues a's path with a's heading at the cut.
+    return _splice(a, i, b, j, blend, max_accel)[0]
+
+
+def _splice(a: Reference, i: int, b: Reference, j: int, blend: int, max_accel: float) -> tuple[Reference, int]:
+    """(the joined reference, the crossfade's length n): a[:i+1] then b[j+1:], b moved so its root continues a's path with a's heading at the cut.
 
     The first n steps of b are crossfaded with a's continuation (a's last step held if
     it ends there): joints, height, orientation and end effectors blend, the horizontal
@@ -73,8 +70,7 @@ def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4, max_accel
     velocity = tail.velocity @ rot.T
     joints, angular, ee = tail.joints.copy(), tail.angular_velocity.copy(), tail.end_effectors.copy()
 
-    speed_change = float(np.linalg.norm(velocity[0, :2] - a.velocity[i, :2]))
-    n = min(len(joints), max(blend, int(np.ceil(speed_change / (max_accel * a.dt)))))
+    n = min(len(joints), ramp_steps(a.velocity[i], velocity[0], a.dt, blend, max_accel))
     if n > 0:
         cont = np.minimum(np.arange(i + 1, i + 1 + n), a.num_steps - 1)  # a carried on
         w = np.arange(1, n + 1) / (n + 1)
@@ -83,7 +79,9 @@ def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4, max_accel
         ee[:n] = _crossfade(a.end_effectors[cont], ee[:n], w)
         quaternion[:n] = slerp(a.quaternion[cont], quaternion[:n], w)
         velocity[:n] = _crossfade(a.velocity[cont], velocity[:n], w)
-        path = a.position[i, :2] + np.cumsum(velocity[:n, :2], axis=0) * a.dt
+        # trapezoidal integration: the stored velocities are central differences
+        steps = (np.vstack([a.velocity[i, :2], velocity[:n - 1, :2]]) + velocity[:n, :2]) / 2
+        path = a.position[i, :2] + np.cumsum(steps, axis=0) * a.dt
         position[n:, :2] += path[-1] - position[n - 1, :2]  # b goes on from where the ramp ended
         position[:n, :2] = path
         position[:n, 2] = _crossfade(a.position[cont, 2], position[:n, 2], w)
@@ -91,7 +89,7 @@ def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4, max_accel
     head = _keep_phase(a, i + 1)
     all_joints = cat(head.joints, joints)
     joints_velocity = cat(head.joints_velocity, tail.joints_velocity)
-    window = slice(i + 1, i + 1 + n)  # blended joints move at the rate of the blend itself
+    window = slice(i, i + n + 2)  # blended joints (and their neighbours) move at the blend's rate
     joints_velocity[window] = np.gradient(all_joints, a.dt, axis=0)[window]
     return Reference(clip_id=f"{a.clip_id}+{b.clip_id}", dt=a.dt, cyclic=False,
                      joints=all_joints, joints_velocity=joints_velocity,
@@ -99,7 +97,16 @@ def splice(a: Reference, i: int, b: Reference, j: int, blend: int = 4, max_accel
                      velocity=cat(head.velocity, velocity),
                      angular_velocity=cat(head.angular_velocity, angular),
                      end_effectors=cat(head.end_effectors, ee),
-                     phase=cat(head.phase, tail.phase))  # each behaviour keeps its own time input
+                     phase=cat(head.phase, tail.phase)), n  # each behaviour keeps its own time input
+
+
+def ramp_steps(v_from: np.ndarray, v_to: np.ndarray, dt: float, blend: int, max_accel: float) -> int:
+    """Steps of a crossfade from root velocity v_from to v_to: `blend`, or as many as keep
+    the horizontal acceleration within `max_accel`."""
+    if not max_accel > 0:
+        raise ValueError(f"max_accel must be a positive acceleration in m/s^2, got {max_accel}")
+    change = float(np.linalg.norm(np.asarray(v_to)[:2] - np.asarray(v_from)[:2]))
+    return max(int(blend), int(np.ceil(change / (max_accel * dt))))
 
 
 def _crossfade(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -117,16 +124,18 @@ def markov_reference(references: Sequence[Reference], graph: Mapping[int, Sequen
                      rng: np.random.Generator, start: int | None = None, blend: int = 4,
                      min_stay: int = 10, max_accel: float = MAX_ACCEL) -> tuple[Reference, np.ndarray]:
     """Chains behaviours by a Markov walk on `graph` (behaviour -> allowed next ones) until
-    `steps` steps; each transition cut by `best_cut` after at least `min_stay` steps in the
-    current behaviour. Returns the reference and the per-step behaviour index."""
+    `steps` steps; each transition cut by `best_cut` at least `min_stay` steps after the
+    current behaviour's crossfade ended. Returns the reference and the per-step behaviour index."""
     current = int(rng.integers(len(references))) if start is None else int(start)
     ref = references[current]
     labels = np.full(ref.num_steps, current)
     entered = 0
     while ref.num_steps < steps:
         nxt = int(rng.choice(list(graph[current])))
-        i, j, _ = best_cut(ref, references[nxt], min_a=min(entered + min_stay, ref.num_steps - 1))
-        spliced = splice(ref, i, references[nxt], j, blend, max_accel)
+        b = references[nxt]
+        i, j, _ = best_cut(ref, b, min_a=min(entered + min_stay, ref.num_steps - 1),
+                           max_b=max(1, b.num_steps - 1 - min_stay))  # b then lasts min_stay steps at least
+        spliced, ramp = _splice(ref, i, b, j, blend, max_accel)
         labels = np.concatenate([labels[:i + 1], np.full(spliced.num_steps - i - 1, nxt)])
-        ref, current, entered = spliced, nxt, i + 1
+        ref, current, entered = spliced, nxt, i + 1 + ramp  # the next cut comes after the ramp
     return ref.segment(0, steps), labels[:steps]

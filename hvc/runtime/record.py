@@ -3,8 +3,9 @@
 `record_episodes=N` during training saves the first N episodes, those of an untrained
 agent. This stage loads a training run's checkpoint with the config that run was trained
 with (`from_run=<run dir>`), plays its policy (sampling, as it acted in training) in one
-env and writes episodes/, fragments.csv and a copy of the checkpoint into its own run dir:
-the analysis scripts take this dir as they take a training run's.
+env and writes episodes/, fragments.csv, a copy of the checkpoint and the config it played
+with into its own run dir: the analysis scripts take this dir as they take a training
+run's. Only seed and record_episodes come from the command line.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
@@ -41,8 +43,13 @@ def trained_config(cfg: DictConfig) -> DictConfig:
 
 
 def run_record(cfg: DictConfig, run_dir: Path) -> dict:
+    torch.set_num_threads(1)
+    torch.manual_seed(int(cfg.seed))  # the policy's samples: a seed gives the same episodes
     trained = trained_config(cfg)
     source = Path(cfg.from_run)
+    # this run's own record: the config it played with (the training run's, plus the above)
+    played = OmegaConf.merge(trained, {"stage": "record", "from_run": str(source)})
+    (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(played, resolve=True))
     state = load_checkpoint(source / "checkpoint.pt")
     envs = make_envs(trained)
     try:
