@@ -54,19 +54,26 @@ class SVG0Retrace:
         self.target_critic.load_state_dict(self.critic.state_dict())
 
     @torch.no_grad()
-    def critic_targets(self, b: Batch) -> torch.Tensor:
+    def critic_targets(self, b: Batch, target_mean: torch.Tensor | None = None) -> torch.Tensor:
+        """Retrace targets; `target_mean` = target_policy.mean(b.obs) when the caller has it."""
         sigma = self.policy.sigma
         obs, next_obs = b.obs[:-1], b.obs[1:]
+        if target_mean is None:
+            target_mean = self.target_policy.mean(b.obs)
+        next_mean = target_mean[1:]
         q_taken = self.target_critic(obs, b.actions)
-        next_mean = self.target_policy.mean(next_obs)
-        v_next = torch.stack([self.target_critic(next_obs, next_mean + sigma * torch.randn_like(next_mean))
-                              for _ in range(self.value_samples)]).mean(0)
-        log_pi = gaussian_log_prob(b.actions, self.target_policy.mean(obs), sigma)
+        # the value samples in one critic call (the learner's cost is mostly per-call overhead)
+        noise = torch.stack([torch.randn_like(next_mean) for _ in range(self.value_samples)])
+        samples = next_mean + sigma * noise
+        v_next = self.target_critic(next_obs.expand(self.value_samples, *next_obs.shape), samples).mean(0)
+        log_pi = gaussian_log_prob(b.actions, target_mean[:-1], sigma)
         traces = truncated_traces(log_pi, b.log_mu, self.retrace_lambda) * b.mask
         return retrace_targets(b.rewards, b.discounts, q_taken, v_next, traces, self.gamma)
 
     def update(self, b: Batch) -> dict[str, float]:
-        targets = self.critic_targets(b)
+        with torch.no_grad():
+            target_mean_all = self.target_policy.mean(b.obs)
+        targets = self.critic_targets(b, target_mean_all)
         obs = b.obs[:-1]
         weight = b.mask / b.mask.sum().clamp(min=1.0)
         q = self.critic(obs, b.actions)
@@ -79,9 +86,7 @@ class SVG0Retrace:
         mean = self.policy.mean(obs)
         action = mean + self.policy.sigma * torch.randn_like(mean)
         q_pi = self.target_critic(obs, action)
-        with torch.no_grad():
-            target_mean = self.target_policy.mean(obs)
-        kl = kl_fixed_sigma(mean, target_mean, self.policy.sigma)
+        kl = kl_fixed_sigma(mean, target_mean_all[:-1], self.policy.sigma)
         policy_loss = ((-q_pi + self.kl_cost * kl) * weight).sum()
         self.policy_opt.zero_grad()
         policy_loss.backward()
