@@ -107,16 +107,20 @@ def _cyclic_expert(obs_size, n=12, cycle=4):
                   ref)
 
 
-def test_steerable_holds_a_rate_for_one_gait_cycle(env):
+def test_steerable_holds_a_rate_for_one_gait_cycle_from_the_matching_phase(env):
     from hvc.controllers.structured import SteerableController
 
     expert = _cyclic_expert(136 + 2)
     controller = SteerableController(expert, (-1.5, 1.5))
     wrapped = ControlledEnv(env, controller)
     obs = wrapped.reset()
+    body = obs["proprio"][:56]
+    cycle_joints = expert.reference.joints[:4, controller.actuator_order]
+    entry = int(np.argmin(np.abs(cycle_joints - body).mean(1)))  # the cycle step nearest the start pose
     news = []
     for step in range(8):
-        expected = expert.act(np.concatenate([obs["proprio"], [expert.reference.phase[step % 4], 1.5]]))
+        phase = expert.reference.phase[(entry + step) % 4]
+        expected = expert.act(np.concatenate([obs["proprio"], [phase, 1.5]]))
         obs, _, _, done, info = wrapped.step(np.array([3.0]) if wrapped.needs_action else None)  # clipped to 1.5
         np.testing.assert_allclose(env.data.ctrl[env.layout.actuators], np.clip(expected, -1, 1), atol=1e-6)
         news.append(info["new_action"])

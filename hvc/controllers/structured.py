@@ -1,7 +1,8 @@
 """Structured controllers (Sec. 2.2): the steerable and the switching policy.
 
 Steerable: the high level sets a turning rate in the steering range, held one gait cycle;
-the steerable expert runs the cycle with that rate as input. Switching: the high level
+the steerable expert runs the cycle with that rate as input, its phase entered at the
+step whose pose best matches the body's when an episode starts, then running on. Switching: the high level
 picks one of k behaviours, held one gait cycle; on a change the switching expert enters
 the new behaviour at the step whose pose best matches the body's (as the training
 references were cut), and its 1-of-k input follows the choice.
@@ -11,6 +12,20 @@ from __future__ import annotations
 import numpy as np
 
 from hvc.controllers.base import ActionSpace
+
+
+def _actuator_order() -> np.ndarray:
+    """Proprioception lists joints in actuator order, references in mocap order."""
+    from dm_control.locomotion.walkers.cmu_humanoid import _CMU_MOCAP_JOINTS
+
+    return np.argsort(_CMU_MOCAP_JOINTS)
+
+
+def best_matching_step(joints: np.ndarray, proprio: np.ndarray, actuator_order: np.ndarray) -> int:
+    """The reference step whose joint angles (T, 56, mocap order) are nearest the body's
+    (the joint positions that lead the proprioception)."""
+    body = proprio[:joints.shape[1]]
+    return int(np.argmin(np.abs(joints[:, actuator_order] - body).mean(1)))
 
 
 def _cycle_length(phase: np.ndarray) -> int:
@@ -25,21 +40,22 @@ class SteerableController:
         self.cycle = _cycle_length(expert.reference.phase)
         self.phase = expert.reference.phase[:self.cycle]
         self.action_space = ActionSpace(discrete=False, size=1, low=self.low, high=self.high)
-        self.rate, self.step = 0.0, self.cycle
+        self.actuator_order = _actuator_order()
+        self.rate, self.held, self.t = 0.0, self.cycle, None
 
     @property
     def start_references(self) -> list:
         return [self.expert.reference]
 
     def reset(self) -> None:
-        self.rate, self.step = 0.0, self.cycle
+        self.rate, self.held, self.t = 0.0, self.cycle, None  # phase chosen from the first pose
 
     def needs_action(self) -> bool:
-        return self.step >= self.cycle
+        return self.held >= self.cycle
 
     def set_action(self, action) -> None:
         self.rate = float(np.clip(np.ravel(action)[0], self.low, self.high))
-        self.step = 0
+        self.held = 0
 
     @property
     def record(self) -> float:
@@ -47,18 +63,18 @@ class SteerableController:
         return self.rate
 
     def body_action(self, obs) -> np.ndarray:
-        t = self.step % self.cycle
-        self.step += 1
+        if self.t is None:
+            self.t = best_matching_step(self.expert.reference.joints[:self.cycle], obs["proprio"],
+                                        self.actuator_order)
+        t, self.t = self.t, (self.t + 1) % self.cycle
+        self.held += 1
         return self.expert.act(np.concatenate([obs["proprio"], [self.phase[t], self.rate]]).astype(np.float32))
 
 
 class SwitchingController:
     def __init__(self, expert, behaviours, hold_steps: int):
-        from dm_control.locomotion.walkers.cmu_humanoid import _CMU_MOCAP_JOINTS
-
         self.expert = expert
-        # proprioception lists joints in actuator order; references in mocap order
-        self.actuator_order = np.argsort(_CMU_MOCAP_JOINTS)
+        self.actuator_order = _actuator_order()
         self.behaviours = behaviours  # references of the k behaviours (pose matching and time inputs)
         self.hold = int(hold_steps)
         self.action_space = ActionSpace(discrete=True, n=len(behaviours))
@@ -90,8 +106,7 @@ class SwitchingController:
     def body_action(self, obs) -> np.ndarray:
         ref = self.behaviours[self.current]
         if self.t is None:
-            joints = obs["proprio"][:ref.joints.shape[1]]  # joints_pos leads the proprioception
-            self.t = int(np.argmin(np.abs(ref.joints[:, self.actuator_order] - joints).mean(1)))
+            self.t = best_matching_step(ref.joints, obs["proprio"], self.actuator_order)
         t = min(self.t, ref.num_steps - 1)
         self.t = t + 1 if t + 1 < ref.num_steps else (0 if ref.cyclic else t)
         self.held += 1
