@@ -1,6 +1,7 @@
 """Learning curves of a `stage=lowlevel` run: per clip, tracking reward and completion vs env steps.
 
     python analysis/plot_lowlevel.py outputs/<run dir> [out.png]
+    python analysis/plot_lowlevel.py --steering outputs/<stage=evaluate run dir of a steerable library> [out.png]
 
 Reads each expert's metrics.csv (long format) and draws the on-policy (noisy) per-step
 reward and episode completion during RL, with the deterministic evaluation before RL
@@ -47,6 +48,37 @@ def plot(run_dir: Path, out: Path) -> Path:
     return out
 
 
+def plot_steering(eval_dir: Path, out: Path) -> Path:
+    """Commanded vs achieved turning rate (and completion) of a steerable policy, from the
+    `achieved_rate/<clip>/<rate>` and `completion/<clip>/<rate>` rows of stage=evaluate."""
+    m = pd.read_csv(eval_dir / "metrics.csv")
+    rows = m[m.key.str.startswith(("achieved_rate/", "completion/"))].copy()
+    if rows.empty:
+        raise SystemExit(f"{eval_dir}/metrics.csv has no steering rows: evaluate a steerable library")
+    parts = rows.key.str.split("/", expand=True)
+    rows["measure"], rows["commanded"] = parts[0], parts[2].astype(float)
+    table = rows.pivot_table(index="commanded", columns="measure", values="value")
+    fig, (rate_ax, done_ax) = plt.subplots(1, 2, figsize=(10, 4))
+    limit = float(abs(table.index.to_numpy()).max())
+    rate_ax.plot([-limit, limit], [-limit, limit], "k--", lw=1, label="commanded")
+    rate_ax.plot(table.index, table["achieved_rate"], "o-", label="achieved")
+    rate_ax.set_xlabel("commanded turning rate (rad/s)")
+    rate_ax.set_ylabel("achieved (slope of the heading, rad/s)")
+    rate_ax.legend()
+    done_ax.bar(table.index, table["completion"], width=0.3)
+    done_ax.set_xlabel("commanded turning rate (rad/s)")
+    done_ax.set_ylabel("completion of 8 gait cycles")
+    for ax in (rate_ax, done_ax):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    return out
+
+
 if __name__ == "__main__":
-    run = Path(sys.argv[1])
-    print(plot(run, Path(sys.argv[2]) if len(sys.argv) > 2 else run / "learning_curves.png"))
+    args = sys.argv[1:]
+    steering = args[:1] == ["--steering"]
+    run = Path(args[1] if steering else args[0])
+    rest = args[2:] if steering else args[1:]
+    out = Path(rest[0]) if rest else run / ("steering.png" if steering else "learning_curves.png")
+    print(plot_steering(run, out) if steering else plot(run, out))

@@ -44,3 +44,17 @@ def test_a_resumed_run_counts_each_episode_once():
     m = pd.DataFrame(rows, columns=["env_steps", "learner_steps", "wall_time", "key", "value"])
     # timeline kept: 100 (3 episodes, 0), 200 (2 episodes, 10 each), 300 (2 episodes, 0)
     assert mean_return(m) == pytest.approx(20.0 / 7)
+
+
+def test_steering_plot_reads_the_evaluation_rows(tmp_path):
+    from plot_lowlevel import plot_steering
+
+    rows = [(0, 0, 1.0, f"{measure}/CMU_009_06/{rate:+.1f}", value)
+            for rate in (-1.5, 0.0, 1.5) for measure, value in (("achieved_rate", rate / 2), ("completion", 0.5))]
+    rows.append((0, 0, 1.0, "eval_reward/CMU_009_06", 0.3))
+    pd.DataFrame(rows, columns=["env_steps", "learner_steps", "wall_time", "key", "value"]).to_csv(
+        tmp_path / "metrics.csv", index=False)
+    assert plot_steering(tmp_path, tmp_path / "s.png").stat().st_size > 1000
+    (tmp_path / "metrics.csv").write_text("env_steps,learner_steps,wall_time,key,value\n0,0,1.0,eval_reward/x,0.3\n")
+    with pytest.raises(SystemExit, match="no steering rows"):
+        plot_steering(tmp_path, tmp_path / "t.png")
