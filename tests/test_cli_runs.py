@@ -263,3 +263,29 @@ def test_a_killed_training_run_saves_its_checkpoint_and_says_how_to_resume(tmp_p
     assert proc.returncode == 130 and "resume=" in err, err[-2000:]
     state = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
     assert state["counters"]["env_steps"] > 0 and state["counters"]["updates"] > 0
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+def test_lowlevel_reuses_experts_of_another_library(tmp_path):
+    """Only the clips the reused library lacks are trained; the others are kept as they are."""
+    import numpy as np
+
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+
+    shipped = ExpertLibrary.load(shipped_library())
+    partial = ExpertLibrary(shipped.experts[:3], shipped.meta).save(tmp_path / "three.npz")
+    tiny = ["lowlevel.bc_steps=10", "lowlevel.bc_rollouts=1", "lowlevel.min_replay_unrolls=2",
+            "lowlevel.batch_size=2", "lowlevel.eval_episodes=1", "lowlevel.hidden=[256,256]",
+            "lowlevel.critic_hidden=[16]"]
+    _run("stage=lowlevel", "clips=go_to_target", "total_steps=40", f"lowlevel.reuse={partial}", *tiny,
+         "hydra.run.dir=ll", cwd=tmp_path)
+    trained = sorted(p.name for p in (tmp_path / "ll" / "experts").iterdir())
+    assert trained == ["3_right_turn_CMU_016_43"]
+    library = ExpertLibrary.load(tmp_path / "ll" / "experts_go_to_target.npz")
+    assert library.clip_ids == shipped.clip_ids
+    x = np.random.default_rng(0).normal(size=137).astype(np.float32)
+    for kept, original in zip(library.experts[:3], shipped.experts[:3]):
+        np.testing.assert_array_equal(kept.act(x), original.act(x))
+    assert not np.allclose(library.experts[3].act(x), shipped.experts[3].act(x))  # newly trained
+    assert library.meta["provenance"]["env_steps"][:3] == shipped.meta["provenance"]["env_steps"][:3]

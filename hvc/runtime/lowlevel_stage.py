@@ -8,6 +8,7 @@ killed run in place: finished clips are kept, the others restart from their chec
 from __future__ import annotations
 
 import json
+import logging
 import multiprocessing as mp
 import os
 import signal
@@ -24,6 +25,8 @@ from hvc.mocap.clip_sets import entries_of, resolve
 from hvc.mocap.source import find_mocap_file
 from hvc.runtime.env_config import env_dicts
 from hvc.runtime.signals import raise_interrupt
+
+log = logging.getLogger(__name__)
 
 
 def expert_dir(run_dir: Path, index: int, entry) -> Path:
@@ -43,10 +46,30 @@ def _train_worker(task, body, render, cfg_ll, out_dir: str, total_steps: int, se
         raise
 
 
+def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
+    """{entry index: (expert, its env steps)} from `lowlevel.reuse`, a library whose experts
+    of identical clip entries are kept rather than retrained (the paper augments a set
+    "without any additional work": gaps = the 4 base behaviours + 8 jumps)."""
+    source = cfg.lowlevel.get("reuse")
+    if not source or cfg.clips.get("switching"):
+        return {}
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+
+    path = shipped_library() if source == "shipped" else Path(source)
+    library = ExpertLibrary.load(path)
+    steps = library.meta.get("provenance", {}).get("env_steps") or [0] * len(library.experts)
+    by_entry = {json.dumps(e.entry, sort_keys=True): (e, int(n)) for e, n in zip(library.experts, steps)}
+    found = {i: by_entry[key] for i, key in enumerate(json.dumps(e.as_dict(), sort_keys=True) for e in entries)
+             if key in by_entry}
+    log.info("reusing %d of %d experts from %s", len(found), len(entries), path)
+    return found
+
+
 def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     mocap_file = find_mocap_file(cfg.mocap_file, str(cfg.body.get("model_version", "2019")))
     entries = resolve(entries_of(cfg.clips), str(mocap_file))
     cfg_ll = OmegaConf.to_container(cfg.lowlevel, resolve=True)
+    reused = reusable_experts(cfg, entries)
     jobs = []
     if cfg.clips.get("switching"):  # one policy over the whole set (the switching controller's)
         from hvc.mocap.clip_sets import ClipEntry
@@ -61,6 +84,8 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
             jobs.append((combined, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed),
                                          os.getpid())))
     for i, entry in enumerate(entries if not cfg.clips.get("switching") else []):
+        if i in reused:
+            continue
         out = expert_dir(run_dir, i, entry)
         out.mkdir(parents=True, exist_ok=True)
         (out / "error.txt").unlink(missing_ok=True)
@@ -112,7 +137,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         raise RuntimeError("; ".join(failed))
     if cfg.clips.get("switching"):
         entries = [combined]
-    library = assemble_library(cfg, run_dir, entries, mocap_file)
+    library = assemble_library(cfg, run_dir, entries, mocap_file, reused)
     path = library.save(run_dir / f"experts_{cfg.clips.name}.npz")
     for e in library.experts:
         print(f"expert clip={e.entry['id']} behaviour={e.entry['behaviour']} "
@@ -121,8 +146,9 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     return {"library": str(path), "experts": {e.entry["id"]: e.scores for e in library.experts}}
 
 
-def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path):
-    """The expert library from the clips' checkpoints and evaluation results."""
+def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path, reused: dict | None = None):
+    """The expert library from the clips' checkpoints and evaluation results (and the
+    experts reused from another library, as they are)."""
     import torch
 
     from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
@@ -131,6 +157,11 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path):
 
     experts, steps, behaviours = [], [], []
     for i, entry in enumerate(entries):
+        if reused and i in reused:
+            expert, n = reused[i]
+            experts.append(expert)
+            steps.append(n)
+            continue
         out = expert_dir(run_dir, i, entry)
         state = torch.load(out / "checkpoint.pt", weights_only=True)
         weights = state["learner"]["policy"]
