@@ -22,6 +22,12 @@ def yaw_quat(yaw: float) -> np.ndarray:
     return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
 
 
+def rot_z(angle: float) -> np.ndarray:
+    """3x3 rotation by `angle` radians about the world z axis."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def yaw_rotate(quaternions: np.ndarray, yaw) -> np.ndarray:
     """yaw_quat(yaw) * q for each row of (N, 4) quaternions; `yaw` a scalar or (N,)."""
     c, s = np.cos(np.asarray(yaw) / 2), np.sin(np.asarray(yaw) / 2)

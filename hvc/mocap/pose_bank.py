@@ -9,12 +9,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from hvc.mocap.clips import root_heading
-from hvc.rotations import quat_mul, yaw_quat
-
-
-def _rot_z(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+from hvc.rotations import quat_mul, rot_z, yaw_quat, yaw_rotate
 
 
 @dataclass(frozen=True)
@@ -33,16 +28,18 @@ class PoseBank:
     def from_references(cls, references: Iterable) -> "PoseBank":
         parts = {k: [] for k in cls.__dataclass_fields__}
         for ref in references:
-            heading = root_heading(ref.quaternion)
-            for t in range(ref.num_steps):
-                turn = -heading[t]
-                parts["joints"].append(ref.joints[t])
-                parts["joints_velocity"].append(ref.joints_velocity[t])
-                parts["height"].append(ref.position[t, 2])
-                parts["quaternion"].append(quat_mul(yaw_quat(turn), ref.quaternion[t]))
-                parts["velocity"].append(_rot_z(turn) @ ref.velocity[t])
-                parts["angular_velocity"].append(ref.angular_velocity[t])
-        return cls(**{k: np.asarray(v, float) for k, v in parts.items()})
+            turn = -root_heading(ref.quaternion)  # per step: face +x
+            c, s = np.cos(turn), np.sin(turn)
+            velocity = np.array(ref.velocity, float)  # rot_z(turn) @ v, step by step
+            velocity[:, 0], velocity[:, 1] = c * ref.velocity[:, 0] - s * ref.velocity[:, 1], \
+                s * ref.velocity[:, 0] + c * ref.velocity[:, 1]
+            parts["joints"].append(ref.joints)
+            parts["joints_velocity"].append(ref.joints_velocity)
+            parts["height"].append(ref.position[:, 2])
+            parts["quaternion"].append(yaw_rotate(ref.quaternion, turn))
+            parts["velocity"].append(velocity)
+            parts["angular_velocity"].append(ref.angular_velocity)
+        return cls(**{k: np.concatenate(v).astype(float) for k, v in parts.items()})
 
     @classmethod
     def from_entries(cls, entries: Iterable[Mapping], mocap_file: str) -> "PoseBank":
@@ -57,6 +54,6 @@ class PoseBank:
         qpos[root_qpos + 2] = self.height[i]
         qpos[root_qpos + 3:root_qpos + 7] = quat_mul(yaw_quat(yaw), self.quaternion[i])
         qpos[joint_qpos] = self.joints[i]
-        qvel[root_dof:root_dof + 3] = _rot_z(yaw) @ self.velocity[i]
+        qvel[root_dof:root_dof + 3] = rot_z(yaw) @ self.velocity[i]
         qvel[root_dof + 3:root_dof + 6] = self.angular_velocity[i]
         qvel[joint_dof] = self.joints_velocity[i]

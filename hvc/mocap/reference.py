@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hvc.mocap.clips import root_heading
-from hvc.rotations import quat_mul, yaw_quat
+from hvc.rotations import quat_mul, rot_z, yaw_quat
 
 
 @dataclass(frozen=True)
@@ -61,11 +61,6 @@ def from_clip(clip, start: int = 0, end: int | None = None) -> Reference:
         phase=_linear_phase(len(joints)))
 
 
-def _rot_z(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def find_cycle(joints: np.ndarray, min_len: int, max_len: int, margin: int) -> tuple[int, int]:
     """(start, length) of the most periodic window: the pose after `length` steps is
     closest to the pose at `start` (mean absolute joint-angle difference)."""
@@ -102,7 +97,7 @@ def loop_cycle(ref: Reference, start: int, length: int, blend: int, repeats: int
     positions, quats, vels = [], [], []
     origin = ref.position[start].copy()
     for k in range(repeats):
-        rot = _rot_z(k * yaw_drift)
+        rot = rot_z(k * yaw_drift)
         turn = yaw_quat(k * yaw_drift)
         local = ref.position[idx] - ref.position[start]
         positions.append(origin + local @ rot.T)

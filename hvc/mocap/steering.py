@@ -16,12 +16,7 @@ import numpy as np
 
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference
-from hvc.rotations import quat_mul, yaw_quat
-
-
-def _rot_z(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+from hvc.rotations import quat_mul, rot_z, yaw_quat
 
 
 def _world_to_root(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -46,7 +41,7 @@ def steer_cycle(cycle: Reference, rates: Sequence[float]) -> tuple[Reference, np
     heading, xy = 0.0, cycle.position[0, :2].copy()
     for rate in rates:
         for i in range(length):
-            turn = _rot_z(heading)
+            turn = rot_z(heading)
             q = quat_mul(yaw_quat(heading), cycle.quaternion[i])
             position.append(np.array([xy[0], xy[1], cycle.position[i, 2]]))
             quaternion.append(q)

@@ -18,15 +18,10 @@ import numpy as np
 
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference
-from hvc.rotations import slerp, yaw_rotate
+from hvc.rotations import rot_z, slerp, yaw_rotate
 
 #: m/s^2, about a sprinter's start: the fastest root speed change a cut may ask for
 MAX_ACCEL = 4.0
-
-
-def _rot_z(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _heading_free(ref: Reference) -> np.ndarray:
@@ -62,7 +57,7 @@ def _splice(a: Reference, i: int, b: Reference, j: int, blend: int, max_accel: f
     """
     ha, hb = root_heading(a.quaternion[[i]])[0], root_heading(b.quaternion[[j]])[0]
     turn = ha - hb
-    rot = _rot_z(turn)
+    rot = rot_z(turn)
     tail = replace(b.segment(j + 1), phase=b.phase[j + 1:])  # keep b's own time input
     position = (tail.position - b.position[j]) @ rot.T + a.position[i]
     position[:, 2] = tail.position[:, 2]
