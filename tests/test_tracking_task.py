@@ -117,3 +117,49 @@ def test_looped_cycle_is_continuous_at_the_seam(run_env):
     assert steps[length - 1] < 3 * np.median(steps)            # no jump at the seam
     jumps = np.linalg.norm(np.diff(ref.position, axis=0), axis=1)
     assert jumps[length - 1] < 3 * np.median(jumps)            # the next cycle starts where the last ended
+
+
+def test_pose_error_ignores_position_and_heading_but_not_tilt(run_env):
+    """The deviation termination looks only at what the egocentric policy can observe."""
+    from hvc.lowlevel.tracking import pose_error
+    from hvc.rotations import quat_mul, yaw_quat
+
+    logic, data, model = run_env.layout.logic, run_env.data, run_env.model
+    t, root = 30, logic.root_qpos
+    ref = logic.reference_features(t)
+
+    def error_after(position_shift=(0.0, 0.0, 0.0), turn=None):
+        logic.set_reference_state(data, t)
+        data.qpos[root:root + 3] += position_shift
+        if turn is not None:
+            data.qpos[root + 3:root + 7] = quat_mul(turn, data.qpos[root + 3:root + 7])
+        mujoco.mj_forward(model, data)
+        return pose_error(logic.body_features(data), ref)
+
+    assert error_after() == pytest.approx(0.0, abs=1e-9)
+    assert error_after((1.5, -2.0, 0.0), yaw_quat(0.9)) == pytest.approx(0.0, abs=1e-9)
+    tilt = np.array([np.cos(0.15), np.sin(0.15), 0.0, 0.0])   # 0.3 rad about world x
+    assert error_after(turn=tilt) > 0.03
+    logic.set_reference_state(data, t)
+    data.qpos[logic.joint_qpos] += 0.2
+    mujoco.mj_forward(model, data)
+    assert pose_error(logic.body_features(data), ref) > 0.5 * 0.2     # the joint half alone
+
+
+def test_straying_from_the_reference_fails_only_with_a_termination_error():
+    def steps_until_done(*extra):
+        env = _env("run", "task.random_start=false", *extra)
+        env.reset()
+        steps, done = 0, False
+        while not done:
+            _, _, discount, done = env.step(np.zeros(env.action_size))  # hold the mid-range pose
+            steps += 1
+        failed = env.layout.logic.failure
+        env.close()
+        return steps, failed, discount
+
+    free_steps, _, _ = steps_until_done()
+    strict_steps, failed, discount = steps_until_done("task.termination_error=0.1")
+    assert failed and discount == 0.0 and strict_steps < free_steps
+    with pytest.raises(ValueError, match="termination_error"):
+        _env("run", "task.termination_error=0")

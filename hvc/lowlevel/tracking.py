@@ -4,17 +4,20 @@ Episodes start at a random step of the reference with its pose and velocities; t
 policy sees proprioception plus the normalised time in the clip (a sawtooth phase for
 looped gait cycles); the reward is the paper's tracking reward against the reference
 at the new time; the episode fails when any body part other than the hands and feet
-touches the ground, and ends at the clip's end.
+touches the ground (and, with `termination_error`, when the pose strays from the
+reference), and ends at the clip's end.
 """
 from __future__ import annotations
 
 from typing import Any, Mapping
 
+import mujoco
 import numpy as np
 from dm_control import mjcf
 
 from hvc.envs.task_logic import TaskLogic, ContactTermination
 from hvc.lowlevel.reward import TrackingFeatures, TrackingReward
+from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference, find_cycle, from_clip, loop_cycle
 
 # Bodies allowed to touch the ground: feet and hands (the paper's termination rule).
@@ -42,6 +45,29 @@ def build_reference(entry: Mapping[str, Any], mocap_file: str, cycle_repeats: in
     repeats = max(cycle_repeats, -(-int(steps) // int(cycle[1])) if steps else 0)
     looped = loop_cycle(whole, int(cycle[0]), int(cycle[1]), blend=cycle_blend, repeats=repeats)
     return looped.segment(0, int(steps)) if steps else looped
+
+
+def heading_frame_vectors(quaternion: np.ndarray, root_vectors: np.ndarray) -> np.ndarray:
+    """Root-frame vectors (n, 3) re-expressed in the root's heading frame (world axes turned
+    by the root's heading): unchanged by where the body is and which way it faces, which an
+    egocentric policy cannot see, but changed by any tilt, which it can (its gravity sensor)."""
+    rotation = np.empty(9)
+    mujoco.mju_quat2Mat(rotation, np.asarray(quaternion, np.float64))
+    world = np.reshape(root_vectors, (-1, 3)) @ rotation.reshape(3, 3).T
+    heading = float(root_heading(np.asarray(quaternion)[None])[0])
+    c, s = np.cos(heading), np.sin(heading)
+    return world @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def pose_error(body: TrackingFeatures, ref: TrackingFeatures) -> float:
+    """How far the pose has strayed from the reference: the mean of the mean absolute joint
+    error (rad) and the mean absolute error of the end effectors (m) in the heading frame.
+    Like dm_control's tracking termination error (0.5 joints + 0.5 bodies) but blind to the
+    global position and heading, which the egocentric policy cannot observe."""
+    joints = float(np.mean(np.abs(body.joints - ref.joints)))
+    ee = np.abs(heading_frame_vectors(body.quaternion, body.end_effectors)
+                - heading_frame_vectors(ref.quaternion, ref.end_effectors))
+    return 0.5 * joints + 0.5 * float(np.mean(ee))
 
 
 class TrackingLogic(TaskLogic):
@@ -76,6 +102,10 @@ class TrackingLogic(TaskLogic):
             cfg["clip"], cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)), int(cfg.get("cycle_blend", 4)))
         self.reward_fn = TrackingReward(cfg["reward"])
         self.random_start = bool(cfg.get("random_start", True))
+        threshold = cfg.get("termination_error")
+        if threshold is not None and not float(threshold) > 0:
+            raise ValueError(f"task.termination_error must be a positive pose error or null (off), got {threshold}")
+        self.termination_error = None if threshold is None else float(threshold)
         self.t = 0
         self.failure = False
         self.last_terms: dict[str, float] = {}
@@ -121,7 +151,9 @@ class TrackingLogic(TaskLogic):
 
     def after_step(self, model, data, rng):
         self.t += 1
-        self.failure = self.contact_failure(data)
+        self.failure = self.contact_failure(data) or (
+            self.termination_error is not None
+            and pose_error(self.body_features(data), self.reference_features(self.t)) > self.termination_error)
 
     def reward(self, model, data):
         reward, self.last_terms = self.reward_fn(self.body_features(data), self.reference_features(self.t))
