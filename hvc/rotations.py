@@ -22,6 +22,14 @@ def yaw_quat(yaw: float) -> np.ndarray:
     return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
 
 
+def quat_to_mat(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix of a unit quaternion: maps body-frame vectors to the world frame."""
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
 def rot_z(angle: float) -> np.ndarray:
     """3x3 rotation by `angle` radians about the world z axis."""
     c, s = np.cos(angle), np.sin(angle)

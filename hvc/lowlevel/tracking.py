@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
-import mujoco
 import numpy as np
 from dm_control import mjcf
 
@@ -19,6 +18,7 @@ from hvc.envs.task_logic import TaskLogic, ContactTermination
 from hvc.lowlevel.reward import TrackingFeatures, TrackingReward
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference, find_cycle, from_clip, loop_cycle
+from hvc.rotations import quat_to_mat, rot_z
 
 # Bodies allowed to touch the ground: feet and hands (the paper's termination rule).
 ALLOWED_CONTACT_BODIES = ("lfoot", "ltoes", "rfoot", "rtoes", "lhand", "lfingers", "lthumb",
@@ -51,12 +51,9 @@ def heading_frame_vectors(quaternion: np.ndarray, root_vectors: np.ndarray) -> n
     """Root-frame vectors (n, 3) re-expressed in the root's heading frame (world axes turned
     by the root's heading): unchanged by where the body is and which way it faces, which an
     egocentric policy cannot see, but changed by any tilt, which it can (its gravity sensor)."""
-    rotation = np.empty(9)
-    mujoco.mju_quat2Mat(rotation, np.asarray(quaternion, np.float64))
-    world = np.reshape(root_vectors, (-1, 3)) @ rotation.reshape(3, 3).T
+    world = np.reshape(root_vectors, (-1, 3)) @ quat_to_mat(quaternion).T
     heading = float(root_heading(np.asarray(quaternion)[None])[0])
-    c, s = np.cos(heading), np.sin(heading)
-    return world @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return world @ rot_z(heading)
 
 
 def pose_error(body: TrackingFeatures, ref: TrackingFeatures) -> float:

@@ -16,15 +16,7 @@ import numpy as np
 
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference
-from hvc.rotations import quat_mul, rot_z, yaw_quat
-
-
-def _world_to_root(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-    return rot.T @ v
+from hvc.rotations import quat_mul, quat_to_mat, rot_z, yaw_quat
 
 
 def steer_cycle(cycle: Reference, rates: Sequence[float]) -> tuple[Reference, np.ndarray]:
@@ -47,7 +39,7 @@ def steer_cycle(cycle: Reference, rates: Sequence[float]) -> tuple[Reference, np
             quaternion.append(q)
             v = turn @ cycle.velocity[i]
             velocity.append(v)
-            angular.append(cycle.angular_velocity[i] + _world_to_root(q, np.array([0.0, 0.0, rate + straighten])))
+            angular.append(cycle.angular_velocity[i] + quat_to_mat(q).T @ np.array([0.0, 0.0, rate + straighten]))
             per_step_rate.append(rate)
             xy = xy + (turn @ steps[i])[:2]
             heading += (rate + straighten) * dt
