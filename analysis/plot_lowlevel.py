@@ -2,6 +2,7 @@
 
     python analysis/plot_lowlevel.py outputs/<run dir> [out.png]
     python analysis/plot_lowlevel.py --steering outputs/<stage=evaluate run dir of a steerable library> [out.png]
+    python analysis/plot_lowlevel.py --compare out.png CLIP LABEL=<run dir> LABEL=<run dir> ...
 
 Reads each expert's metrics.csv (long format) and draws the on-policy (noisy) per-step
 reward and episode completion during RL, with the deterministic evaluation before RL
@@ -48,6 +49,27 @@ def plot(run_dir: Path, out: Path) -> Path:
     return out
 
 
+def plot_compare(out: Path, clip: str, runs: dict[str, Path]) -> Path:
+    """One clip's curves from several runs (e.g. settings resumed from one checkpoint)."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for label, run_dir in runs.items():
+        matches = [name for name in load(run_dir) if name.endswith(f"_{clip}") or f"_{clip}_" in name]
+        if not matches:
+            raise SystemExit(f"{run_dir} has no expert of clip {clip!r}")
+        table = load(run_dir)[matches[0]]
+        for ax, key in zip(axes, ("step_reward", "completion")):
+            ax.plot(table.index, table[key].rolling(5, min_periods=1).mean(), label=label)
+    axes[0].set_title(f"{clip}: tracking reward per step (with noise)")
+    axes[1].set_title(f"{clip}: completion of the remaining clip")
+    for ax in axes:
+        ax.set_xlabel("env steps")
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    return out
+
+
 def plot_steering(eval_dir: Path, out: Path) -> Path:
     """Commanded vs achieved turning rate (and completion) of a steerable policy, from the
     `achieved_rate/<clip>/<rate>` and `completion/<clip>/<rate>` rows of stage=evaluate."""
@@ -77,6 +99,10 @@ def plot_steering(eval_dir: Path, out: Path) -> Path:
 
 if __name__ == "__main__":
     args = sys.argv[1:]
+    if args[:1] == ["--compare"]:
+        runs = dict(arg.split("=", 1) for arg in args[3:])
+        print(plot_compare(Path(args[1]), args[2], {label: Path(d) for label, d in runs.items()}))
+        sys.exit()
     steering = args[:1] == ["--steering"]
     run = Path(args[1] if steering else args[0])
     rest = args[2:] if steering else args[1:]
