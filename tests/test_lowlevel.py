@@ -89,6 +89,19 @@ def test_targets_refresh_every_period_and_learning_reduces_critic_loss():
         torch.testing.assert_close(p, t)
 
 
+def test_resuming_keeps_adams_moments_but_takes_the_configured_learning_rates():
+    learner = _learner()
+    learner.update(_batch())
+    state = learner.state_dict()
+    resumed = SVG0Retrace(GaussianPolicy(6, 3, [16], 0.1), QNetwork(6, 3, [16]),
+                          {**CFG, "policy_lr": 3e-4, "critic_lr": 2e-4})
+    resumed.load_state_dict(state)
+    assert [g["lr"] for g in resumed.policy_opt.param_groups] == [3e-4]
+    assert [g["lr"] for g in resumed.critic_opt.param_groups] == [2e-4]
+    saved = state["policy_opt"]["state"][0]["exp_avg"]
+    torch.testing.assert_close(resumed.policy_opt.state_dict()["state"][0]["exp_avg"], saved)
+
+
 def test_pretraining_reduces_the_action_error():
     rng = np.random.default_rng(0)
     obs = rng.normal(size=(200, 6)).astype(np.float32)

@@ -110,6 +110,9 @@ class SVG0Retrace:
         self.critic.load_state_dict(state["critic"])
         self.target_policy.load_state_dict(state["target_policy"])
         self.target_critic.load_state_dict(state["target_critic"])
-        self.policy_opt.load_state_dict(state["policy_opt"])
-        self.critic_opt.load_state_dict(state["critic_opt"])
+        for opt, key in ((self.policy_opt, "policy_opt"), (self.critic_opt, "critic_opt")):
+            configured = [group["lr"] for group in opt.param_groups]
+            opt.load_state_dict(state[key])
+            for group, lr in zip(opt.param_groups, configured):  # torch would restore the saved rate and
+                group["lr"] = lr                                 # silently ignore a changed *_lr on resume
         self.steps = int(state["steps"])
