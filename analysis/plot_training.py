@@ -65,4 +65,6 @@ def plot(out: Path, run_dirs: list[Path], points: int = 60) -> Path:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) < 3:
+        raise SystemExit(__doc__)
     print(plot(Path(sys.argv[1]), [Path(a) for a in sys.argv[2:]]))
