@@ -12,6 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from hvc.config import CONF_DIR, ConfigError, check_group_overrides, resolve_num_envs, validate
 from hvc.errors import HvcUserError
+from hvc.provenance import record_command
 
 log = logging.getLogger("hvc")
 
@@ -31,6 +32,7 @@ def _run(cfg: DictConfig) -> None:
     if cfg.get("resume") and not run_dir.is_dir():
         print(f"hvc-run: error: resume={cfg.resume} is not a run directory", file=sys.stderr)
         sys.exit(2)
+    record_command(run_dir)
     # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     log.info("stage=%s run dir %s", cfg.stage, run_dir)

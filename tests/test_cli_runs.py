@@ -135,6 +135,8 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     second = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert second["counters"]["env_steps"] >= 160 > first["counters"]["env_steps"]
     assert second["counters"]["updates"] > first["counters"]["updates"]
+    commands = (run_dir / "commands.log").read_text().splitlines()  # both invocations, in order
+    assert len(commands) == 2 and "total_steps=80" in commands[0] and f"resume={run_dir}" in commands[1]
 
 
 def test_metrics_logger_writes_csv_rows_and_tensorboard_events(tmp_path):
@@ -289,3 +291,5 @@ def test_lowlevel_reuses_experts_of_another_library(tmp_path):
         np.testing.assert_array_equal(kept.act(x), original.act(x))
     assert not np.allclose(library.experts[3].act(x), shipped.experts[3].act(x))  # newly trained
     assert library.meta["provenance"]["env_steps"][:3] == shipped.meta["provenance"]["env_steps"][:3]
+    [command] = library.meta["provenance"]["run_commands"]  # every invocation on the run dir, with its version
+    assert command.endswith("hydra.run.dir=ll") and "lowlevel.reuse=" in command and "[hvc " in command

@@ -10,7 +10,6 @@ A file from an incompatible format version fails to load with a clear message.
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +21,7 @@ import hvc
 from hvc.agents.mlp import NumpyPolicy
 from hvc.errors import LibraryVersionError  # noqa: F401  (raised here, re-exported)
 from hvc.mocap.reference import Reference
+from hvc.provenance import code_version
 
 LIBRARY_VERSION = 1
 REFERENCE_FIELDS = ("joints", "joints_velocity", "position", "quaternion", "velocity", "angular_velocity",
@@ -100,15 +100,6 @@ class ExpertLibrary:
                                        for name in REFERENCE_FIELDS})
                           for k, info in enumerate(meta.get("behaviours", []))]
         return cls(experts, {k: v for k, v in meta.items() if k not in ("experts", "behaviours")}, behaviours)
-
-
-def code_version() -> str:
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, timeout=5).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        commit = ""
-    return f"hvc {hvc.__version__}" + (f" ({commit})" if commit else "")
 
 
 def provenance(steps: Sequence[int], extra: dict[str, Any] | None = None) -> dict[str, Any]:

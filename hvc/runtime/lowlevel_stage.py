@@ -23,6 +23,7 @@ from tqdm import tqdm
 from hvc.config import group_config
 from hvc.mocap.clip_sets import entries_of, resolve
 from hvc.mocap.source import find_mocap_file
+from hvc.provenance import run_commands
 from hvc.runtime.env_config import env_dicts
 from hvc.runtime.signals import raise_interrupt
 
@@ -190,7 +191,8 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path, 
                 "switching": OmegaConf.to_container(cfg.clips.switching, resolve=True)}
                if cfg.clips.get("switching") else {}),
             "hidden": list(cfg.lowlevel.hidden), "control_timestep": float(cfg.task.control_timestep),
-            "provenance": provenance(steps, {"mocap_file": str(mocap_file), "training_command": _training_command(run_dir)})}
+            "provenance": provenance(steps, {"mocap_file": str(mocap_file), "training_command": _training_command(run_dir),
+                                                 "run_commands": run_commands(run_dir)})}
     return ExpertLibrary(experts, meta, behaviours)
 
 
