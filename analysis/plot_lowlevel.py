@@ -53,10 +53,11 @@ def plot_compare(out: Path, clip: str, runs: dict[str, Path]) -> Path:
     """One clip's curves from several runs (e.g. settings resumed from one checkpoint)."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for label, run_dir in runs.items():
-        matches = [name for name in load(run_dir) if name.endswith(f"_{clip}") or f"_{clip}_" in name]
-        if not matches:
-            raise SystemExit(f"{run_dir} has no expert of clip {clip!r}")
-        table = load(run_dir)[matches[0]]
+        curves = load(run_dir)
+        matches = [name for name in curves if name.endswith(f"_{clip}") or f"_{clip}_" in name]
+        if len(matches) != 1:
+            raise SystemExit(f"{run_dir}: {len(matches)} experts match clip {clip!r}: {matches or list(curves)}")
+        table = curves[matches[0]]
         for ax, key in zip(axes, ("step_reward", "completion")):
             ax.plot(table.index, table[key].rolling(5, min_periods=1).mean(), label=label)
     axes[0].set_title(f"{clip}: tracking reward per step (with noise)")
@@ -99,6 +100,8 @@ def plot_steering(eval_dir: Path, out: Path) -> Path:
 
 if __name__ == "__main__":
     args = sys.argv[1:]
+    if not args or (args[0].startswith("--") and len(args) < (4 if args[0] == "--compare" else 2)):
+        raise SystemExit(__doc__)
     if args[:1] == ["--compare"]:
         runs = dict(arg.split("=", 1) for arg in args[3:])
         print(plot_compare(Path(args[1]), args[2], {label: Path(d) for label, d in runs.items()}))

@@ -32,7 +32,8 @@ def _run(cfg: DictConfig) -> None:
     if cfg.get("resume") and not run_dir.is_dir():
         print(f"hvc-run: error: resume={cfg.resume} is not a run directory", file=sys.stderr)
         sys.exit(2)
-    record_command(run_dir)
+    overrides = HydraConfig.get().overrides  # this job's own: a multirun job's values, not the sweep's lists
+    record_command(run_dir, [*overrides.task, *(o for o in overrides.hydra if not o.startswith("hydra.mode="))])
     # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     log.info("stage=%s run dir %s", cfg.stage, run_dir)

@@ -3,8 +3,8 @@ run dir (a resumed run's later overrides, e.g. a changed learning rate, are part
 history and Hydra's own record in .hydra/ keeps only the first)."""
 from __future__ import annotations
 
+import shlex
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -15,19 +15,20 @@ COMMANDS_FILE = "commands.log"
 
 def code_version() -> str:
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+        commit = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
                                 cwd=Path(__file__).parent, timeout=5).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         commit = ""
     return f"hvc {hvc.__version__}" + (f" ({commit})" if commit else "")
 
 
-def record_command(run_dir: Path) -> None:
-    """Append this invocation (UTC time, code version, command line) to the run dir's log."""
+def record_command(run_dir: Path, overrides: list[str]) -> None:
+    """Append this job (UTC time, code version, its own overrides: in a multirun, this job's
+    values rather than the sweep's) to the run dir's log, quoted so that it replays."""
     line = " ".join([time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), f"[{code_version()}]",
-                     "hvc-run", *sys.argv[1:]])
+                     "hvc-run", shlex.join(overrides)])
     with open(run_dir / COMMANDS_FILE, "a") as log:
-        log.write(line + "\n")
+        log.write(line.rstrip() + "\n")
 
 
 def run_commands(run_dir: Path) -> list[str]:

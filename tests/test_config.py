@@ -93,6 +93,7 @@ def _hvc_run(*args, cwd):
     (["task=tracking"], "stage=lowlevel"),
     (["algorithm.updates_per_unroll=0"], "algorithm.updates_per_unroll=0"),
     (["num_envs=0"], "num_envs=0 must be a positive integer or auto"),
+    (["stage=lowlevel", "task=tracking", "task.termination_error=-0.1"], "task.termination_error=-0.1 must be"),
     (["controller=fragments", "task=gaps", "library=null", "clips=gaps", "num_envs=1"], "stage=lowlevel clips=gaps"),
 ])
 def test_cli_rejects_bad_values_with_one_line_before_work(tmp_path, args, needle):

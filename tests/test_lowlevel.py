@@ -187,3 +187,23 @@ def test_expert_training_resumes_from_its_checkpoint(tmp_path):
     metrics = pd.read_csv(tmp_path / "metrics.csv")
     assert (metrics.key == "bc_mse_after").sum() == 1          # pre-training ran once
     assert metrics.env_steps.max() >= 400 and 0 <= result["eval_completion"] <= 1
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+def test_final_evaluation_scores_by_contact_whatever_termination_trained(tmp_path):
+    import pandas as pd
+    from omegaconf import OmegaConf
+
+    from hvc.config import compose
+    from hvc.lowlevel.train import train_expert
+    from hvc.runtime.env_config import env_dicts
+
+    cfg = compose(["stage=lowlevel", "task=tracking", "clip=stand", "task.termination_error=1e-9",
+                   "lowlevel.bc_steps=20", "lowlevel.bc_rollouts=2", "lowlevel.min_replay_unrolls=5",
+                   "lowlevel.eval_episodes=3", "lowlevel.log_every=50", "lowlevel.batch_size=4"])
+    task, body, render = env_dicts(cfg)
+    result = train_expert(task, body, render, OmegaConf.to_container(cfg.lowlevel), tmp_path, total_steps=60)
+    training = pd.read_csv(tmp_path / "metrics.csv").query("key == 'episode_return'")
+    assert (training.value < 1.0).all()        # training episodes strayed and failed at their first step
+    assert result["eval_steps"] > 5             # the evaluation let the stand expert run on

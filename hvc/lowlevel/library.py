@@ -4,12 +4,13 @@ An `.npz` (numpy, `allow_pickle=False`) holding, per expert, the policy's weight
 observation normalisation, and the reference it tracks (pose, velocities, end effectors,
 time input per step: the bank of start poses for the tasks' initialisation and the
 material of the query controller's fragment keys); plus JSON metadata: format version,
-clip entries, evaluation scores and provenance (command, steps, code version).
+clip entries, evaluation scores and provenance (commands, steps, code version).
 A file from an incompatible format version fails to load with a clear message.
 """
 from __future__ import annotations
 
 import json
+import shlex
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -103,7 +104,7 @@ class ExpertLibrary:
 
 
 def provenance(steps: Sequence[int], extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    return {"command": " ".join(["hvc-run", *sys.argv[1:]]), "env_steps": list(steps),
+    return {"command": shlex.join(["hvc-run", *sys.argv[1:]]), "env_steps": list(steps),
             "code_version": code_version(), **(extra or {})}
 
 
