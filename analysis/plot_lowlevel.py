@@ -40,6 +40,10 @@ def plot(run_dir: Path, out: Path) -> Path:
                 ax.plot(evals.index, evals.values, "o", color=line.get_color())
     axes[0].set_title("tracking reward per step (line: with noise; dots: deterministic eval)")
     axes[1].set_title("completion of the remaining clip")
+    return _save_curves(fig, axes, out)
+
+
+def _save_curves(fig, axes, out: Path) -> Path:
     for ax in axes:
         ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
@@ -62,13 +66,7 @@ def plot_compare(out: Path, clip: str, runs: dict[str, Path]) -> Path:
             ax.plot(table.index, table[key].rolling(5, min_periods=1).mean(), label=label)
     axes[0].set_title(f"{clip}: tracking reward per step (with noise)")
     axes[1].set_title(f"{clip}: completion of the remaining clip")
-    for ax in axes:
-        ax.set_xlabel("env steps")
-        ax.grid(alpha=0.3)
-    axes[0].legend()
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    return out
+    return _save_curves(fig, axes, out)
 
 
 def plot_steering(eval_dir: Path, out: Path) -> Path:

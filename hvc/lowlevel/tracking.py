@@ -99,9 +99,7 @@ class TrackingLogic(TaskLogic):
             cfg["clip"], cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)), int(cfg.get("cycle_blend", 4)))
         self.reward_fn = TrackingReward(cfg["reward"])
         self.random_start = bool(cfg.get("random_start", True))
-        threshold = cfg.get("termination_error")
-        if threshold is not None and not float(threshold) > 0:
-            raise ValueError(f"task.termination_error must be a positive pose error or null (off), got {threshold}")
+        threshold = cfg.get("termination_error")  # checked with the config (hvc.config.validate)
         self.termination_error = None if threshold is None else float(threshold)
         self.t = 0
         self.failure = False
@@ -148,12 +146,14 @@ class TrackingLogic(TaskLogic):
 
     def after_step(self, model, data, rng):
         self.t += 1
+        self.body_now, self.reference_now = self.body_features(data), self.reference_features(self.t)
         self.failure = self.contact_failure(data) or (
             self.termination_error is not None
-            and pose_error(self.body_features(data), self.reference_features(self.t)) > self.termination_error)
+            and pose_error(self.body_now, self.reference_now) > self.termination_error)
 
     def reward(self, model, data):
-        reward, self.last_terms = self.reward_fn(self.body_features(data), self.reference_features(self.t))
+        """Against the features `after_step` read for this step (the env calls it right after)."""
+        reward, self.last_terms = self.reward_fn(self.body_now, self.reference_now)
         return reward
 
     def terminated(self):
