@@ -296,3 +296,28 @@ def test_lowlevel_reuses_experts_of_another_library(tmp_path):
     assert library.meta["provenance"]["env_steps"][:3] == shipped.meta["provenance"]["env_steps"][:3]
     [command] = library.meta["provenance"]["run_commands"]  # every invocation on the run dir, with its version
     assert command.endswith("hydra.run.dir=ll") and "lowlevel.reuse=" in command and "[hvc " in command
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+def test_steerable_policy_warm_starts_from_the_run_expert(tmp_path):
+    """With its critic still warming up the new policy is the shipped run expert, and the
+    rate input has no effect yet; no behaviour cloning ran."""
+    import numpy as np
+
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+
+    tiny = ["lowlevel.min_replay_unrolls=2", "lowlevel.batch_size=2", "lowlevel.eval_episodes=1",
+            "lowlevel.critic_hidden=[16]", "lowlevel.warm_start_critic_steps=1000", "lowlevel.log_every=20"]
+    _run("stage=lowlevel", "clips=steerable", "lowlevel.warm_start=shipped", "total_steps=60", *tiny,
+         "hydra.run.dir=ll", cwd=tmp_path)
+    [run] = [e for e in ExpertLibrary.load(shipped_library()).experts if e.entry["behaviour"] == "run"]
+    [steerable] = ExpertLibrary.load(tmp_path / "ll" / "experts_steerable.npz").experts
+    x = np.random.default_rng(0).normal(size=(5, run.policy.weights[0].shape[0] + 1)).astype(np.float32)
+    np.testing.assert_allclose(steerable.act(x), run.act(x[:, :-1]), atol=1e-5)
+    metrics = pd.read_csv(next((tmp_path / "ll" / "experts").glob("*/metrics.csv")))
+    assert "bc_mse_after" not in set(metrics.key) and "critic_loss" in set(metrics.key)
+    bad = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "clips=switching",
+                          "lowlevel.warm_start=shipped", "total_steps=10"], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=600)
+    assert bad.returncode != 0 and "not to clips=switching" in bad.stderr

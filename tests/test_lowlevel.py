@@ -8,7 +8,7 @@ import torch
 from hvc.agents.mlp import GaussianPolicy, NumpyPolicy, QNetwork, gaussian_log_prob
 from hvc.algorithms.svg0_retrace import Batch, SVG0Retrace
 from hvc.lowlevel.library import ExpertLibrary, Expert, LibraryVersionError
-from hvc.lowlevel.train import pretrain
+from hvc.lowlevel.train import load_warm_start, pretrain
 from hvc.mocap.reference import Reference
 
 CFG = dict(gamma=0.9, retrace_lambda=1.0, kl_cost=0.5, target_update_period=3, value_samples=2, policy_lr=1e-3,
@@ -100,6 +100,34 @@ def test_resuming_keeps_adams_moments_but_takes_the_configured_learning_rates():
     assert [g["lr"] for g in resumed.critic_opt.param_groups] == [2e-4]
     saved = state["policy_opt"]["state"][0]["exp_avg"]
     torch.testing.assert_close(resumed.policy_opt.state_dict()["state"][0]["exp_avg"], saved)
+
+
+def test_critic_only_updates_leave_the_policy_alone():
+    learner, b = _learner(), _batch()
+    policy, critic = ([p.detach().clone() for p in m.parameters()] for m in (learner.policy, learner.critic))
+    learner.update(b, train_policy=False)
+    assert all(torch.equal(a, p) for a, p in zip(policy, learner.policy.parameters()))
+    assert not all(torch.equal(a, p) for a, p in zip(critic, learner.critic.parameters()))
+    learner.update(b)
+    assert not all(torch.equal(a, p) for a, p in zip(policy, learner.policy.parameters()))
+
+
+def test_warm_start_acts_as_the_expert_whatever_the_new_inputs():
+    """A steerable policy started from the run expert: the rate input starts ignored."""
+    torch.manual_seed(0)
+    expert = GaussianPolicy(6, 3, [16, 16], 0.1)
+    expert.normalizer.set(np.arange(6.0), np.full(6, 2.0))
+    expert_np = NumpyPolicy.from_torch(expert)
+    policy = GaussianPolicy(8, 3, [16, 16], 0.1)
+    load_warm_start(policy, expert_np, np.full(8, 5.0), np.full(8, 3.0))
+    x = np.random.default_rng(2).normal(size=(10, 8)).astype(np.float32) * 4
+    np.testing.assert_allclose(policy.mean(torch.from_numpy(x)).detach().numpy(), expert_np(x[:, :6]), atol=1e-6)
+    np.testing.assert_allclose(policy.normalizer.mean.numpy(), [0, 1, 2, 3, 4, 5, 5, 5])  # the new inputs' own
+    np.testing.assert_allclose(policy.normalizer.std.numpy(), [2] * 6 + [3, 3])
+    with pytest.raises(ValueError, match="lowlevel.hidden"):
+        load_warm_start(GaussianPolicy(8, 3, [32, 16], 0.1), expert_np, np.zeros(8), np.ones(8))
+    with pytest.raises(ValueError, match="lowlevel.hidden"):  # fewer inputs than the expert's
+        load_warm_start(GaussianPolicy(5, 3, [16, 16], 0.1), expert_np, np.zeros(5), np.ones(5))
 
 
 def test_pretraining_reduces_the_action_error():

@@ -70,7 +70,9 @@ class SVG0Retrace:
         traces = truncated_traces(log_pi, b.log_mu, self.retrace_lambda) * b.mask
         return retrace_targets(b.rewards, b.discounts, q_taken, v_next, traces, self.gamma)
 
-    def update(self, b: Batch) -> dict[str, float]:
+    def update(self, b: Batch, train_policy: bool = True) -> dict[str, float]:
+        """One critic step and, unless `train_policy` is False (a fresh critic learning the
+        values of a warm-started policy before it may steer it), one policy step."""
         with torch.no_grad():
             target_mean_all = self.target_policy.mean(b.obs)
         targets = self.critic_targets(b, target_mean_all)
@@ -88,10 +90,11 @@ class SVG0Retrace:
         q_pi = self.target_critic(obs, action)
         kl = kl_fixed_sigma(mean, target_mean_all[:-1], self.policy.sigma)
         policy_loss = ((-q_pi + self.kl_cost * kl) * weight).sum()
-        self.policy_opt.zero_grad()
-        policy_loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.policy.parameters(), 40.0)
-        self.policy_opt.step()
+        if train_policy:
+            self.policy_opt.zero_grad()
+            policy_loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), 40.0)
+            self.policy_opt.step()
 
         self.steps += 1
         if self.steps % self.target_update_period == 0:

@@ -24,6 +24,7 @@ from typing import Any, Mapping
 import mujoco
 import numpy as np
 import torch
+from torch import nn
 
 from hvc.agents.mlp import GaussianPolicy, NumpyPolicy, QNetwork
 from hvc.algorithms.svg0_retrace import SVG0Retrace
@@ -92,6 +93,28 @@ def pretrain(policy: GaussianPolicy, obs: np.ndarray, actions: np.ndarray, steps
     return before, mse()
 
 
+def load_warm_start(policy: GaussianPolicy, expert: NumpyPolicy, mean: np.ndarray, std: np.ndarray) -> None:
+    """Sets `policy` to act as `expert`, a trained policy of the same clip whose observation
+    is a prefix of this one's (proprioception and phase; the steerable policy adds its turning
+    rate): the extra inputs get zero weights and normalisation from (mean, std), so the new
+    policy starts by ignoring them and tracks as well as the expert did."""
+    linears = [m for m in policy.net if isinstance(m, nn.Linear)]
+    shapes = [tuple(m.weight.shape[::-1]) for m in linears]
+    known = expert.weights[0].shape[0]
+    if (len(expert.weights) != len(linears) or [w.shape for w in expert.weights[1:]] != shapes[1:]
+            or expert.weights[0].shape[1] != shapes[0][1] or known > shapes[0][0]):
+        raise ValueError(f"cannot warm-start a policy of layer shapes {shapes} from an expert of layer shapes "
+                         f"{[w.shape for w in expert.weights]}: set lowlevel.hidden to the expert's")
+    with torch.no_grad():
+        for i, (m, w, b) in enumerate(zip(linears, expert.weights, expert.biases)):
+            m.weight.zero_()
+            m.weight[:, :w.shape[0]] = torch.from_numpy(w.T)
+            m.bias.copy_(torch.from_numpy(b))
+    mean, std = np.array(mean, np.float32), np.array(std, np.float32)
+    mean[:known], std[:known] = expert.mean_obs, 1.0 / expert.inv_std
+    policy.normalizer.set(mean, std)
+
+
 def _atomic_save(obj: Any, path: Path) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save(obj, tmp)
@@ -107,9 +130,13 @@ def _set_rng_state(rng: np.random.Generator, state: str) -> None:
 
 
 def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, out_dir: Path,
-                 total_steps: int, seed: int = 0, parent_pid: int | None = None) -> dict[str, float]:
+                 total_steps: int, seed: int = 0, parent_pid: int | None = None,
+                 warm_start: NumpyPolicy | None = None) -> dict[str, float]:
     """Trains (or resumes) one expert in `out_dir`; returns its final evaluation. With
-    `parent_pid`, stops after a checkpoint if that process dies (no orphaned workers)."""
+    `parent_pid`, stops after a checkpoint if that process dies (no orphaned workers).
+    A fresh run with `warm_start` starts from that policy (load_warm_start) instead of
+    behaviour cloning, and trains only its new critic for `warm_start_critic_steps`
+    learner steps, since SVG(0) through an untrained Q would undo what the policy knows."""
     torch.set_num_threads(1)
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -123,16 +150,23 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     learner = SVG0Retrace(policy, critic, cfg)
     replay = UnrollReplay(int(cfg["replay_unrolls"]), int(cfg["unroll"]), obs_size, env.action_size)
     checkpoint = out_dir / "checkpoint.pt"
-    counters = {"env_steps": 0, "episodes": 0}
+    counters = {"env_steps": 0, "episodes": 0, "critic_only_until": 0}
     metrics = MetricsLogger(out_dir / "metrics.csv", tensorboard=True)
     if checkpoint.exists():
         state = torch.load(checkpoint, weights_only=True)
         learner.load_state_dict(state["learner"])
         replay.load_state_dict(state["replay"])
-        counters = {k: int(v) for k, v in state["counters"].items()}
+        counters.update({k: int(v) for k, v in state["counters"].items()})
         _set_rng_state(rng, state["rng"])
         _set_rng_state(env.rng, state["env_rng"])
         torch.set_rng_state(state["torch_rng"])
+    elif warm_start is not None:
+        ref_obs, _ = reference_dataset(env)
+        load_warm_start(policy, warm_start, ref_obs.mean(0), ref_obs.std(0))
+        critic.normalizer.load_state_dict(policy.normalizer.state_dict())
+        learner.sync_targets()
+        counters["critic_only_until"] = int(cfg.get("warm_start_critic_steps", 0))
+        metrics.log(0, evaluate(env, _greedy(NumpyPolicy.from_torch(policy)), int(cfg["eval_episodes"]), "eval_"))
     else:
         ref_obs, ref_actions = reference_dataset(env)
         near_obs, near_actions = perturbed_dataset(env, int(cfg["bc_rollouts"]), sigma, rng)
@@ -182,7 +216,8 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
             obs = env.reset()
         if replay.size >= int(cfg["min_replay_unrolls"]):
             for _ in range(int(cfg["updates_per_unroll"])):
-                info = learner.update(replay.sample(batch_size, rng))
+                info = learner.update(replay.sample(batch_size, rng),
+                                      train_policy=learner.steps >= counters["critic_only_until"])
                 if not all(np.isfinite(v) for v in info.values()):
                     raise NonFiniteLoss(f"non-finite loss {info} at env step {counters['env_steps']} in {out_dir}; "
                                         f"the last good checkpoint is {checkpoint}")

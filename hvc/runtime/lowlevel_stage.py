@@ -34,17 +34,25 @@ def expert_dir(run_dir: Path, index: int, entry) -> Path:
     return run_dir / "experts" / f"{index}_{entry.behaviour}_{entry.id}"
 
 
-def _train_worker(task, body, render, cfg_ll, out_dir: str, total_steps: int, seed: int, parent: int) -> None:
+def _train_worker(task, body, render, cfg_ll, out_dir: str, total_steps: int, seed: int, parent: int,
+                  warm_start=None) -> None:
     from hvc.lowlevel.train import train_expert
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the parent, which stops us cleanly
     out = Path(out_dir)
     try:
-        result = train_expert(task, body, render, cfg_ll, out, total_steps, seed, parent_pid=parent)
+        result = train_expert(task, body, render, cfg_ll, out, total_steps, seed, parent_pid=parent,
+                              warm_start=warm_start)
         (out / "result.json").write_text(json.dumps(result, indent=2))
     except Exception:  # noqa: BLE001 - recorded for the parent, which names the clip
         (out / "error.txt").write_text(traceback.format_exc())
         raise
+
+
+def _library(source: str):
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+
+    return ExpertLibrary.load(shipped_library() if source == "shipped" else Path(source))
 
 
 def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
@@ -54,15 +62,34 @@ def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
     source = cfg.lowlevel.get("reuse")
     if not source or cfg.clips.get("switching"):
         return {}
-    from hvc.lowlevel.library import ExpertLibrary, shipped_library
-
-    path = shipped_library() if source == "shipped" else Path(source)
-    library = ExpertLibrary.load(path)
+    library = _library(source)
     steps = library.meta.get("provenance", {}).get("env_steps") or [0] * len(library.experts)
     by_entry = {json.dumps(e.entry, sort_keys=True): (e, int(n)) for e, n in zip(library.experts, steps)}
     found = {i: by_entry[key] for i, key in enumerate(json.dumps(e.as_dict(), sort_keys=True) for e in entries)
              if key in by_entry}
-    log.info("reusing %d of %d experts from %s", len(found), len(entries), path)
+    log.info("reusing %d of %d experts from %s", len(found), len(entries), source)
+    return found
+
+
+def warm_start_policies(cfg: DictConfig, entries) -> dict[int, object]:
+    """{entry index: policy} from `lowlevel.warm_start`, a library whose expert tracking the
+    same frames of the same clip starts that entry's training (its behaviour, looped length
+    and steering may differ): clips=steerable lowlevel.warm_start=shipped starts the
+    steerable policy from the run expert, which already runs its gait cycle."""
+    source = cfg.lowlevel.get("warm_start")
+    if not source:
+        return {}
+    if cfg.clips.get("switching"):
+        raise ValueError(f"lowlevel.warm_start={source} applies to one policy per clip, not to clips=switching "
+                         f"(one policy over all behaviours); drop it")
+    library = _library(source)
+    frames = lambda e: (e["id"], int(e.get("start") or 0), e.get("end"), bool(e.get("cyclic")))  # noqa: E731
+    by_frames = {frames(e.entry): e.policy for e in library.experts}
+    found = {i: by_frames[frames(e.as_dict())] for i, e in enumerate(entries) if frames(e.as_dict()) in by_frames}
+    if not found:
+        raise ValueError(f"lowlevel.warm_start={source} has no expert for any clip of clips={cfg.clips.name} "
+                         f"(it has {sorted({frames(e.entry)[:3] for e in library.experts})})")
+    log.info("warm-starting %d of %d clips from %s", len(found), len(entries), source)
     return found
 
 
@@ -71,6 +98,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     entries = resolve(entries_of(cfg.clips), str(mocap_file))
     cfg_ll = OmegaConf.to_container(cfg.lowlevel, resolve=True)
     reused = reusable_experts(cfg, entries)
+    warm = warm_start_policies(cfg, entries)
     jobs = []
     if cfg.clips.get("switching"):  # one policy over the whole set (the switching controller's)
         from hvc.mocap.clip_sets import ClipEntry
@@ -94,7 +122,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
             continue  # finished in an earlier attempt of this run
         task, body, render = env_dicts(cfg, entry, tracking=True)
         jobs.append((entry, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed) + i,
-                                   os.getpid())))
+                                   os.getpid(), warm.get(i))))
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")  # one BLAS thread per clip process (inherited at spawn)
     ctx = mp.get_context("spawn")
