@@ -17,7 +17,7 @@ from hvc.provenance import record_command
 log = logging.getLogger("hvc")
 
 
-USER_ERRORS = (FileNotFoundError, HvcUserError)
+USER_ERRORS = (FileNotFoundError, HvcUserError, ConfigError)
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")

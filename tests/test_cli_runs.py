@@ -317,7 +317,24 @@ def test_steerable_policy_warm_starts_from_the_run_expert(tmp_path):
     np.testing.assert_allclose(steerable.act(x), run.act(x[:, :-1]), atol=1e-5)
     metrics = pd.read_csv(next((tmp_path / "ll" / "experts").glob("*/metrics.csv")))
     assert "bc_mse_after" not in set(metrics.key) and "critic_loss" in set(metrics.key)
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+def test_switching_policy_distils_the_experts_of_its_behaviours(tmp_path):
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+
+    tiny = ["lowlevel.bc_rollouts=2", "lowlevel.bc_steps=300", "lowlevel.min_replay_unrolls=2",
+            "lowlevel.batch_size=2", "lowlevel.eval_episodes=1", "lowlevel.critic_hidden=[16]", "lowlevel.log_every=20"]
+    _run("stage=lowlevel", "clips=switching", "lowlevel.warm_start=shipped", "total_steps=40", *tiny,
+         "hydra.run.dir=ll", cwd=tmp_path)
+    metrics = pd.read_csv(next((tmp_path / "ll" / "experts").glob("*/metrics.csv"))).set_index("key").value
+    assert metrics["distill_mse_after"] < 0.5 * metrics["distill_mse_before"]  # it regressed onto the experts
+    assert "bc_mse_after" not in metrics.index
+    shipped = ExpertLibrary.load(shipped_library())
+    three = ExpertLibrary(shipped.experts[:3], shipped.meta).save(tmp_path / "three.npz")
     bad = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "clips=switching",
-                          "lowlevel.warm_start=shipped", "total_steps=10"], capture_output=True, text=True,
+                          f"lowlevel.warm_start={three}", "total_steps=10"], capture_output=True, text=True,
                          cwd=tmp_path, timeout=600)
-    assert bad.returncode != 0 and "not to clips=switching" in bad.stderr
+    lines = [line for line in bad.stderr.splitlines() if line.strip() and "][" not in line]  # not the log lines
+    assert bad.returncode == 2 and len(lines) == 1 and "lacks experts for behaviours ['CMU_016_43']" in lines[0]

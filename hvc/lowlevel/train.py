@@ -73,6 +73,27 @@ def perturbed_dataset(env: FastEnv, episodes: int, sigma: float,
     return np.asarray(obs_list, np.float32), np.asarray(actions, np.float32)
 
 
+def distillation_dataset(env: FastEnv, experts: list[NumpyPolicy], episodes: int, sigma: float,
+                         rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """States of Markov walks driven, with the policy's noise, by the expert of the behaviour
+    in force, each labelled with that expert's action (the expert sees proprioception and its
+    own phase, a prefix of the switching policy's input): regressing on them starts the
+    switching policy as good as the experts are within behaviours, and cold-switching at
+    the walks' cuts, instead of from the reference's open-loop poses."""
+    logic = env.layout.logic
+    obs_list, actions = [], []
+    for _ in range(episodes):
+        obs, done = env.reset(), False
+        while not done:
+            x = policy_observation(obs)
+            expert = experts[int(logic.labels[logic.t])]
+            target = expert(x[:expert.weights[0].shape[0]])
+            obs_list.append(x)
+            actions.append(target)
+            obs, _, _, done = env.step(target + sigma * rng.standard_normal(target.shape))
+    return np.asarray(obs_list, np.float32), np.asarray(actions, np.float32)
+
+
 def pretrain(policy: GaussianPolicy, obs: np.ndarray, actions: np.ndarray, steps: int, lr: float,
              batch: int, rng: np.random.Generator) -> tuple[float, float]:
     """Behaviour cloning of the next reference pose; returns the action MSE before and after."""
@@ -131,12 +152,13 @@ def _set_rng_state(rng: np.random.Generator, state: str) -> None:
 
 def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, out_dir: Path,
                  total_steps: int, seed: int = 0, parent_pid: int | None = None,
-                 warm_start: NumpyPolicy | None = None) -> dict[str, float]:
+                 warm_start: NumpyPolicy | list[NumpyPolicy] | None = None) -> dict[str, float]:
     """Trains (or resumes) one expert in `out_dir`; returns its final evaluation. With
     `parent_pid`, stops after a checkpoint if that process dies (no orphaned workers).
-    A fresh run with `warm_start` starts from that policy (load_warm_start) instead of
-    behaviour cloning, and trains only its new critic for `warm_start_critic_steps`
-    learner steps, since SVG(0) through an untrained Q would undo what the policy knows."""
+    A fresh run with `warm_start` starts from that policy (load_warm_start), or distils a
+    list of per-behaviour experts (distillation_dataset), instead of behaviour cloning, and
+    trains only its new critic for `warm_start_critic_steps` learner steps, since SVG(0)
+    through an untrained Q would undo what the policy knows."""
     torch.set_num_threads(1)
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -161,8 +183,15 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         _set_rng_state(env.rng, state["env_rng"])
         torch.set_rng_state(state["torch_rng"])
     elif warm_start is not None:
-        ref_obs, _ = reference_dataset(env)
-        load_warm_start(policy, warm_start, ref_obs.mean(0), ref_obs.std(0))
+        if isinstance(warm_start, NumpyPolicy):
+            ref_obs, _ = reference_dataset(env)
+            load_warm_start(policy, warm_start, ref_obs.mean(0), ref_obs.std(0))
+        else:  # one expert per behaviour of the switching policy
+            obs, actions = distillation_dataset(env, list(warm_start), int(cfg["bc_rollouts"]), sigma, rng)
+            policy.normalizer.set(obs.mean(0), obs.std(0))
+            before, after = pretrain(policy, obs, actions, int(cfg["bc_steps"]), float(cfg["bc_lr"]),
+                                     int(cfg["bc_batch"]), rng)
+            metrics.log(0, {"distill_mse_before": before, "distill_mse_after": after})
         critic.normalizer.load_state_dict(policy.normalizer.state_dict())
         learner.sync_targets()
         counters["critic_only_until"] = int(cfg.get("warm_start_critic_steps", 0))

@@ -20,7 +20,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from hvc.config import group_config
+from hvc.config import ConfigError, group_config
 from hvc.mocap.clip_sets import entries_of, resolve
 from hvc.mocap.source import find_mocap_file
 from hvc.provenance import run_commands
@@ -75,20 +75,26 @@ def warm_start_policies(cfg: DictConfig, entries) -> dict[int, object]:
     """{entry index: policy} from `lowlevel.warm_start`, a library whose expert tracking the
     same frames of the same clip starts that entry's training (its behaviour, looped length
     and steering may differ): clips=steerable lowlevel.warm_start=shipped starts the
-    steerable policy from the run expert, which already runs its gait cycle."""
+    steerable policy from the run expert, which already runs its gait cycle. For
+    clips=switching, {0: [one expert per behaviour]}, which the switching policy distils."""
     source = cfg.lowlevel.get("warm_start")
     if not source:
         return {}
-    if cfg.clips.get("switching"):
-        raise ValueError(f"lowlevel.warm_start={source} applies to one policy per clip, not to clips=switching "
-                         f"(one policy over all behaviours); drop it")
     library = _library(source)
     frames = lambda e: (e["id"], int(e.get("start") or 0), e.get("end"), bool(e.get("cyclic")))  # noqa: E731
     by_frames = {frames(e.entry): e.policy for e in library.experts}
     found = {i: by_frames[frames(e.as_dict())] for i, e in enumerate(entries) if frames(e.as_dict()) in by_frames}
+    have = sorted({frames(e.entry)[:3] for e in library.experts})
+    if cfg.clips.get("switching"):
+        missing = [e.id for i, e in enumerate(entries) if i not in found]
+        if missing:
+            raise ConfigError(f"lowlevel.warm_start={source} lacks experts for behaviours {missing} of "
+                             f"clips={cfg.clips.name}; the switching policy distils one per behaviour (it has {have})")
+        log.info("distilling the switching policy from %d experts of %s", len(found), source)
+        return {0: [found[i] for i in range(len(entries))]}
     if not found:
-        raise ValueError(f"lowlevel.warm_start={source} has no expert for any clip of clips={cfg.clips.name} "
-                         f"(it has {sorted({frames(e.entry)[:3] for e in library.experts})})")
+        raise ConfigError(f"lowlevel.warm_start={source} has no expert for any clip of clips={cfg.clips.name} "
+                         f"(it has {have})")
     log.info("warm-starting %d of %d clips from %s", len(found), len(entries), source)
     return found
 
@@ -111,7 +117,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         task["clip"] = {"switching": True, "entries": [e.as_dict() for e in entries], **spec}
         if not (out / "result.json").exists():
             jobs.append((combined, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed),
-                                         os.getpid())))
+                                         os.getpid(), warm.get(0))))
     for i, entry in enumerate(entries if not cfg.clips.get("switching") else []):
         if i in reused:
             continue
