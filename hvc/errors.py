@@ -20,3 +20,8 @@ class ControllerUnavailable(HvcUserError, RuntimeError):
 
 class LibraryVersionError(HvcUserError, RuntimeError):
     """An expert library written by an incompatible format version."""
+
+
+class NonFiniteLoss(HvcUserError, FloatingPointError):
+    """A loss or gradient became NaN or inf; raised before the optimiser steps, so the
+    weights (and the checkpoint a run writes on its way out) are the last good ones."""

@@ -119,3 +119,49 @@ def test_normalizer_floor_travels_with_the_weights():
     old = {k: v for k, v in trained.state_dict().items() if k != "var_floor"}
     restored.load_state_dict(old)
     assert float(restored.var_floor) == RunningNormalizer.DEFAULT_VAR_FLOOR
+
+
+def test_a_nan_loss_stops_before_the_weights_or_optimiser_change():
+    """The run's exit checkpoint must hold the last good state, not NaN weights."""
+    import pytest
+    from omegaconf import OmegaConf
+
+    from hvc.algorithms.hl_learners import vtrace_update
+    from hvc.errors import NonFiniteLoss
+
+    torch.manual_seed(0)
+    spec = AgentSpec(proprio_size=3, task_size=0, action_size=4, discrete=True, lstm_size=16, value_mlp=(16, 1))
+    agent = HighLevelAgent(spec)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-2)
+    T, B = 3, 2
+    batch = {"proprio": torch.randn(T + 1, B, 3), "task": torch.zeros(T + 1, B, 0),
+             "prev_reward": torch.zeros(T + 1, B), "prev_action": torch.zeros(T + 1, B, dtype=torch.long),
+             "first": torch.zeros(T + 1, B), "action": torch.zeros(T, B, dtype=torch.long),
+             "log_mu": torch.full((T, B), -1.4), "reward": torch.ones(T, B), "discount": torch.ones(T, B),
+             "new_action": torch.ones(T, B), "state": torch.zeros(B, 4, 128)}  # policy LSTM: 128
+    algorithm = OmegaConf.create({"rho_clip": 1.0, "c_clip": 1.0})
+    vtrace_update(agent, optimizer, batch, 0.9, 0.01, algorithm)  # a good step: Adam has moments now
+    weights = {k: v.clone() for k, v in agent.state_dict().items()}
+    moments = [s["exp_avg"].clone() for s in optimizer.state.values()]
+    batch["reward"][1, 0] = float("nan")
+    with pytest.raises(NonFiniteLoss, match="non-finite loss"):
+        vtrace_update(agent, optimizer, batch, 0.9, 0.01, algorithm)
+    assert all(torch.equal(weights[k], v) for k, v in agent.state_dict().items())
+    assert all(torch.equal(m, s["exp_avg"]) for m, s in zip(moments, optimizer.state.values()))
+
+
+def test_learning_discounts_end_every_episode_time_limits_included():
+    """Actors reset at once, so the step after an end belongs to the next episode."""
+    import numpy as np
+
+    from hvc.algorithms.vtrace import vtrace_targets
+    from hvc.runtime.hl_train import learning_discounts
+
+    env_discounts = np.array([1.0, 1.0, 0.0, 1.0], np.float32)   # ... a fall, and a time limit (discount 1)
+    dones = np.array([False, True, True, False])
+    np.testing.assert_array_equal(learning_discounts(env_discounts, dones), [1.0, 0.0, 0.0, 1.0])
+    # an unroll whose episode hits its time limit at step 1: steps 0-1 see nothing of the next episode
+    d = torch.from_numpy(learning_discounts(np.ones(3, np.float32), np.array([False, True, False])))[:, None]
+    rewards, values = torch.tensor([[1.0], [1.0], [100.0]]), torch.zeros(3, 1)
+    vs = vtrace_targets(torch.zeros(3, 1), d, rewards, values, torch.tensor([50.0]), 0.9).vs
+    torch.testing.assert_close(vs[:2, 0], torch.tensor([1.9, 1.0]))

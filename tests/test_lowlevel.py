@@ -235,3 +235,14 @@ def test_final_evaluation_scores_by_contact_whatever_termination_trained(tmp_pat
     training = pd.read_csv(tmp_path / "metrics.csv").query("key == 'episode_return'")
     assert (training.value < 1.0).all()        # training episodes strayed and failed at their first step
     assert result["eval_steps"] > 5             # the evaluation let the stand expert run on
+
+
+def test_a_nan_loss_leaves_the_expert_and_its_critic_unchanged():
+    from hvc.errors import NonFiniteLoss
+
+    learner, b = _learner(), _batch()
+    before = {k: v.clone() for k, v in learner.state_dict()["critic"].items()}
+    b.rewards[2, 1] = float("inf")
+    with pytest.raises(NonFiniteLoss):
+        learner.update(b)
+    assert all(torch.equal(before[k], v) for k, v in learner.critic.state_dict().items())

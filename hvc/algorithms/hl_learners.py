@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from hvc.agents.network import HighLevelAgent
+from hvc.algorithms.optim import clipped_step
 from hvc.algorithms.retrace import retrace_targets
 from hvc.algorithms.vtrace import vtrace_losses, vtrace_targets
 
@@ -46,10 +47,7 @@ def vtrace_update(agent, optimizer, b, gamma: float, entropy_cost: float, algori
                              float(algorithm.rho_clip), float(algorithm.c_clip))
     losses = vtrace_losses(logits[:-1], b["action"], values[:-1], returns, b["new_action"],
                            torch.ones_like(b["reward"]), entropy_cost)
-    optimizer.zero_grad()
-    losses["loss"].backward()
-    torch.nn.utils.clip_grad_norm_(agent.parameters(), 40.0)
-    optimizer.step()
+    clipped_step(optimizer, losses["loss"], agent.parameters())
     return {k: float(v.detach()) for k, v in losses.items()}
 
 
@@ -140,10 +138,7 @@ class ContinuousLearner:
         if target_out is not None and self.kl_cost > 0:
             kl = torch.distributions.kl_divergence(dist, self.distribution(self.target, target_out[:-1])).sum(-1)
         policy_loss = -((q_pi + self.entropy_cost * entropy - saturation - self.kl_cost * kl) * weight).sum()
-        optimizer.zero_grad()
-        (critic_loss + policy_loss).backward()
-        torch.nn.utils.clip_grad_norm_(self.agent.parameters(), 40.0)
-        optimizer.step()
+        clipped_step(optimizer, critic_loss + policy_loss, self.agent.parameters())
         self.steps += 1
         if self.steps % self.period == 0:
             self.target.load_state_dict(self.agent.state_dict())

@@ -17,6 +17,7 @@ from typing import Mapping
 import torch
 
 from hvc.agents.mlp import GaussianPolicy, QNetwork, gaussian_log_prob
+from hvc.algorithms.optim import clipped_step
 from hvc.algorithms.retrace import retrace_targets, truncated_traces
 
 
@@ -80,10 +81,7 @@ class SVG0Retrace:
         weight = b.mask / b.mask.sum().clamp(min=1.0)
         q = self.critic(obs, b.actions)
         critic_loss = 0.5 * ((q - targets) ** 2 * weight).sum()
-        self.critic_opt.zero_grad()
-        critic_loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.critic.parameters(), 40.0)
-        self.critic_opt.step()
+        clipped_step(self.critic_opt, critic_loss, self.critic.parameters())
 
         mean = self.policy.mean(obs)
         action = mean + self.policy.sigma * torch.randn_like(mean)
@@ -91,10 +89,7 @@ class SVG0Retrace:
         kl = kl_fixed_sigma(mean, target_mean_all[:-1], self.policy.sigma)
         policy_loss = ((-q_pi + self.kl_cost * kl) * weight).sum()
         if train_policy:
-            self.policy_opt.zero_grad()
-            policy_loss.backward()
-            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), 40.0)
-            self.policy_opt.step()
+            clipped_step(self.policy_opt, policy_loss, self.policy.parameters())
 
         self.steps += 1
         if self.steps % self.target_update_period == 0:

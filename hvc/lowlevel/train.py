@@ -29,13 +29,10 @@ from torch import nn
 from hvc.agents.mlp import GaussianPolicy, NumpyPolicy, QNetwork
 from hvc.algorithms.svg0_retrace import SVG0Retrace
 from hvc.envs.fast_env import FastEnv
+from hvc.errors import NonFiniteLoss
 from hvc.lowlevel.evaluation import evaluate, policy_observation
 from hvc.runtime.metrics import MetricsLogger
 from hvc.runtime.replay import UnrollReplay
-
-
-class NonFiniteLoss(RuntimeError):
-    pass
 
 
 def reference_dataset(env: FastEnv, walks: int = 10) -> tuple[np.ndarray, np.ndarray]:
@@ -245,11 +242,12 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
             obs = env.reset()
         if replay.size >= int(cfg["min_replay_unrolls"]):
             for _ in range(int(cfg["updates_per_unroll"])):
-                info = learner.update(replay.sample(batch_size, rng),
-                                      train_policy=learner.steps >= counters["critic_only_until"])
-                if not all(np.isfinite(v) for v in info.values()):
-                    raise NonFiniteLoss(f"non-finite loss {info} at env step {counters['env_steps']} in {out_dir}; "
-                                        f"the last good checkpoint is {checkpoint}")
+                try:
+                    info = learner.update(replay.sample(batch_size, rng),
+                                          train_policy=learner.steps >= counters["critic_only_until"])
+                except NonFiniteLoss as error:
+                    raise NonFiniteLoss(f"{error} at env step {counters['env_steps']} in {out_dir}; "
+                                        f"the last good checkpoint is {checkpoint}") from None
                 losses.append(info)
             if learner.steps % int(cfg["publish_every"]) == 0:
                 actor = NumpyPolicy.from_torch(policy)

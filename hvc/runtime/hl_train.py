@@ -34,7 +34,7 @@ from tqdm import tqdm
 from hvc.agents.network import AgentSpec, HighLevelAgent, RunningNormalizer
 from hvc.algorithms.hl_learners import ContinuousLearner, QueryLearner, pack_state, vtrace_update
 from hvc.envs.vector_env import VectorEnv
-from hvc.errors import ControllerUnavailable, HvcUserError
+from hvc.errors import ControllerUnavailable, HvcUserError, NonFiniteLoss
 from hvc.runtime.env_config import env_dicts
 from hvc.runtime.episodes import EpisodeRecorder
 from hvc.runtime.metrics import MetricsLogger
@@ -178,6 +178,14 @@ def carry(action: np.ndarray, prev_action: np.ndarray, rewards: np.ndarray, done
     return new, in_force, next_reward, next_action, dones.astype(np.float32)
 
 
+def learning_discounts(discounts: np.ndarray, dones: np.ndarray) -> np.ndarray:
+    """The discounts the learner sees: 0 wherever an episode ended, time limits included.
+    The actors reset at once, so the next stored step is a new episode's first: a time
+    limit's env discount of 1 would bootstrap from that state and carry V-trace and
+    Retrace traces across the boundary (IMPALA also treats truncation as termination)."""
+    return np.where(dones, 0.0, discounts).astype(np.float32)
+
+
 def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     torch.set_num_threads(1)
     hl, agent_cfg = cfg.hl, cfg.task.agent
@@ -270,7 +278,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 seq["action"].append(in_force)
                 seq["log_mu"].append(log_mu)
                 seq["reward"].append(rewards)
-                seq["discount"].append(discounts)
+                seq["discount"].append(learning_discounts(discounts, dones))
                 seq["new_action"].append(new)
                 prev_action = next_action
                 for info in infos:
@@ -295,11 +303,12 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 while update_credit >= 1.0:
                     update_credit -= 1.0
                     sample = replay.sample(batch, rng)
-                    losses = (vtrace_update(agent, optimizer, sample, gamma, entropy_cost, cfg.algorithm) if discrete
-                              else learner.update(optimizer, sample, gamma))
-                    if not all(np.isfinite(v) for v in losses.values()):
-                        raise FloatingPointError(f"non-finite loss {losses} at env step {counters['env_steps']}; "
-                                                 f"the last good checkpoint is {checkpoint}")
+                    try:
+                        losses = (vtrace_update(agent, optimizer, sample, gamma, entropy_cost, cfg.algorithm)
+                                  if discrete else learner.update(optimizer, sample, gamma))
+                    except NonFiniteLoss as error:  # raised before the step: the state saved below is good
+                        raise NonFiniteLoss(f"{error} at env step {counters['env_steps']}; the last good state "
+                                            f"is saved in {checkpoint}") from None
                     counters["updates"] += 1
             if counters["env_steps"] - last_log >= int(cfg.log_every):
                 last_log = counters["env_steps"]
