@@ -324,7 +324,7 @@ def test_steerable_policy_warm_starts_from_the_run_expert(tmp_path):
 def test_switching_policy_distils_the_experts_of_its_behaviours(tmp_path):
     from hvc.lowlevel.library import ExpertLibrary, shipped_library
 
-    tiny = ["lowlevel.bc_rollouts=2", "lowlevel.bc_steps=300", "lowlevel.min_replay_unrolls=2",
+    tiny = ["lowlevel.bc_rollouts=2", "lowlevel.distill_steps=300", "lowlevel.min_replay_unrolls=2",
             "lowlevel.batch_size=2", "lowlevel.eval_episodes=1", "lowlevel.critic_hidden=[16]", "lowlevel.log_every=20"]
     _run("stage=lowlevel", "clips=switching", "lowlevel.warm_start=shipped", "total_steps=40", *tiny,
          "hydra.run.dir=ll", cwd=tmp_path)

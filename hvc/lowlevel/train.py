@@ -186,7 +186,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         else:  # one expert per behaviour of the switching policy
             obs, actions = distillation_dataset(env, list(warm_start), int(cfg["bc_rollouts"]), sigma, rng)
             policy.normalizer.set(obs.mean(0), obs.std(0))
-            before, after = pretrain(policy, obs, actions, int(cfg["bc_steps"]), float(cfg["bc_lr"]),
+            before, after = pretrain(policy, obs, actions, int(cfg["distill_steps"]), float(cfg["bc_lr"]),
                                      int(cfg["bc_batch"]), rng)
             metrics.log(0, {"distill_mse_before": before, "distill_mse_after": after})
         critic.normalizer.load_state_dict(policy.normalizer.state_dict())
