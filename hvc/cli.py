@@ -28,7 +28,18 @@ def _run(cfg: DictConfig) -> None:
     except ConfigError as error:
         print(f"hvc-run: error: {error}", file=sys.stderr)
         sys.exit(2)
-    run_dir = Path(cfg.resume) if cfg.get("resume") else Path(HydraConfig.get().runtime.output_dir)
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if cfg.get("resume") is True:  # resume=true: the newest earlier run of this job
+        from hvc.runtime.run_dirs import latest_run_dir
+
+        try:
+            run_dir = latest_run_dir(OmegaConf.to_container(cfg, resolve=True), run_dir)
+        except ConfigError as error:
+            print(f"hvc-run: error: {error}", file=sys.stderr)
+            sys.exit(2)
+        log.info("resume=true: continuing %s", run_dir)
+    elif cfg.get("resume"):
+        run_dir = Path(cfg.resume)
     if cfg.get("resume") and not run_dir.is_dir():
         print(f"hvc-run: error: resume={cfg.resume} is not a run directory", file=sys.stderr)
         sys.exit(2)

@@ -338,3 +338,20 @@ def test_switching_policy_distils_the_experts_of_its_behaviours(tmp_path):
                          cwd=tmp_path, timeout=600)
     lines = [line for line in bad.stderr.splitlines() if line.strip() and "][" not in line]  # not the log lines
     assert bad.returncode == 2 and len(lines) == 1 and "lacks experts for behaviours ['CMU_016_43']" in lines[0]
+
+
+def test_resume_true_continues_the_newest_run_of_the_same_job(tmp_path):
+    import torch
+
+    common = ["body=rolling_ball", "controller=end_to_end", "task.time_limit=1.0", "num_envs=1",
+              "hl.random_episodes=0", "hl.min_replay_unrolls=2", "algorithm.batch_size=4"]
+    bad = subprocess.run([sys.executable, "-m", "hvc.cli", "total_steps=40", *common, "resume=true"],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert bad.returncode == 2 and "resume=true found no earlier run" in bad.stderr
+    _run("total_steps=40", *common, cwd=tmp_path)
+    _run("total_steps=40", *common, "task=walls", cwd=tmp_path)  # newer, but another job
+    [run_dir] = [p for p in (tmp_path / "outputs" / "runs").glob("*/*_go_to_target_end_to_end")
+                 if (p / "checkpoint.pt").exists()]
+    _run("total_steps=80", *common, "resume=true", cwd=tmp_path)
+    assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["counters"]["env_steps"] == 80
+    assert len((run_dir / "commands.log").read_text().splitlines()) == 2

@@ -79,6 +79,10 @@ class Unrolls:
     def capacity(self) -> int:
         return self.proprio.shape[0]
 
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in vars(self).values() if isinstance(a, np.ndarray))
+
     def add(self, **fields) -> None:
         i = self.position
         for name, value in fields.items():
@@ -205,6 +209,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                               spec.policy_lstm, None if discrete else spec.action_size)
     if query:
         replay.query = np.zeros_like(replay.action)
+    log.info("replay: %d unrolls of %d steps, %.2f GiB", replay.capacity, n, replay.nbytes / 2 ** 30)
     prev_query = np.zeros((cfg.num_envs, spec.action_size), np.float32) if query else None
     counters = {"env_steps": 0, "updates": 0, "episodes": 0}
     update_credit = 0.0  # learner updates owed to the actors (algorithm.updates_per_unroll may be fractional)
@@ -229,7 +234,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         torch.save({"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "counters": counters,
                     "spec": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(spec).items()},
                     **({"target_agent": learner.target.state_dict()} if learner is not None else {}),
-                    "replay_position": replay.position, "rng": json.dumps(rng.bit_generator.state),
+                    "rng": json.dumps(rng.bit_generator.state),
                     "torch_rng": torch.get_rng_state(), "update_credit": update_credit}, tmp)
         os.replace(tmp, checkpoint)
 
