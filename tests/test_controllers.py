@@ -144,3 +144,16 @@ def test_switching_enters_a_behaviour_at_the_best_matching_pose(env):
     assert controller.current == 1 and controller.t == entry + 1
     wrapped.step(None), wrapped.step(None)
     assert wrapped.needs_action
+
+
+def test_switching_holds_each_choice_one_gait_cycle_by_default():
+    from dataclasses import replace
+
+    from hvc.controllers.structured import SwitchingController
+
+    stand = _reference(6, 4)
+    run = replace(_reference(12, 5), cyclic=True, phase=np.tile(np.arange(5) / 5, 3)[:12])  # 5-step cycle
+    assert SwitchingController(_cyclic_expert(136 + 1 + 2), [stand, run]).hold == 5
+    assert SwitchingController(_cyclic_expert(136 + 1 + 2), [stand, run], hold_steps=3).hold == 3
+    with pytest.raises(ValueError, match="controller.hold_steps"):
+        SwitchingController(_cyclic_expert(136 + 1 + 2), [stand, stand])

@@ -33,7 +33,7 @@ def build_controller(controller: Mapping[str, Any], env, library: str | None = N
 
         if name == "steerable":
             return SteerableController(lib.experts[0], controller.get("steering_range", (-1.5, 1.5)))
-        return SwitchingController(lib.experts[0], _behaviours(lib), int(controller.get("hold_steps", 20)))
+        return SwitchingController(lib.experts[0], _behaviours(lib), controller.get("hold_steps"))
     lib = ExpertLibrary.load(library_path(library, clip_set))
     if name == "fragments":
         from hvc.controllers.fragments import FragmentsController

@@ -71,12 +71,23 @@ class SteerableController:
         return self.expert.act(np.concatenate([obs["proprio"], [self.phase[t], self.rate]]).astype(np.float32))
 
 
+def gait_cycle_steps(behaviours) -> int:
+    """Steps of one gait cycle: the first cyclic behaviour's (the run's), where the switching
+    policy's training walks switched and its high level may switch."""
+    for ref in behaviours:
+        if ref.cyclic:
+            return _cycle_length(ref.phase)
+    raise ValueError("no cyclic behaviour gives a gait cycle to hold the switching choice for; "
+                     "set controller.hold_steps")
+
+
 class SwitchingController:
-    def __init__(self, expert, behaviours, hold_steps: int):
+    def __init__(self, expert, behaviours, hold_steps: int | None = None):
+        """`hold_steps`: how long each choice is held; None, one gait cycle (gait_cycle_steps)."""
         self.expert = expert
         self.actuator_order = _actuator_order()
         self.behaviours = behaviours  # references of the k behaviours (pose matching and time inputs)
-        self.hold = int(hold_steps)
+        self.hold = gait_cycle_steps(behaviours) if hold_steps is None else int(hold_steps)
         self.action_space = ActionSpace(discrete=True, n=len(behaviours))
         self.current, self.t, self.held = None, 0, self.hold
 

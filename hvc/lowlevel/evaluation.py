@@ -103,7 +103,7 @@ def steering_response(env: FastEnv, act: Callable[[dict, object], np.ndarray], r
 
 
 def switching_transitions(env: FastEnv, act: Callable[[dict, object], np.ndarray], episodes: int,
-                          hold_steps: int = 20) -> dict[str, float]:
+                          hold_steps: int) -> dict[str, float]:
     """Behaviour switches of the switching policy completed without falling (Sec. 2.2).
 
     A switch of the reference's Markov walk is attempted when the body reaches its step;
