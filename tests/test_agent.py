@@ -165,3 +165,95 @@ def test_learning_discounts_end_every_episode_time_limits_included():
     rewards, values = torch.tensor([[1.0], [1.0], [100.0]]), torch.zeros(3, 1)
     vs = vtrace_targets(torch.zeros(3, 1), d, rewards, values, torch.tensor([50.0]), 0.9).vs
     torch.testing.assert_close(vs[:2, 0], torch.tensor([1.9, 1.0]))
+
+
+def _continuous_batch(T=3, B=4, proprio=3, action=2, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return {"proprio": torch.randn(T + 1, B, proprio, generator=g), "task": torch.zeros(T + 1, B, 0),
+            "prev_reward": torch.zeros(T + 1, B), "prev_action": torch.zeros(T + 1, B, action),
+            "first": torch.zeros(T + 1, B), "action": torch.rand(T, B, action, generator=g) * 2 - 1,
+            "query": torch.rand(T, B, action, generator=g) * 2 - 1, "log_mu": torch.zeros(T, B),
+            "reward": torch.rand(T, B, generator=g), "discount": torch.zeros(T, B),
+            "new_action": torch.ones(T, B), "state": torch.zeros(B, 4, 128)}
+
+
+def test_continuous_learner_refreshes_its_target_agent_on_schedule():
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from hvc.algorithms.hl_learners import ContinuousLearner
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
+                                     value_mlp=(16, 1), critic_takes_action=True))
+    learner = ContinuousLearner(agent, OmegaConf.create({"target_update_period": 3}), OmegaConf.create({}),
+                                SimpleNamespace(low=-1.0, high=1.0))
+    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-2)
+    same = lambda: all(torch.equal(a, b) for a, b in zip(agent.state_dict().values(),  # noqa: E731
+                                                         learner.target.state_dict().values()))
+    history = []
+    for _ in range(6):
+        learner.update(optimizer, _continuous_batch(), 0.9)
+        history.append(same())
+    assert history == [False, False, True, False, False, True]
+
+
+def test_query_learner_fits_q_to_one_step_targets_on_query_and_selected_key():
+    """With discount 0 the 1-step target is the reward: Q(h, query) and Q(h, key) both learn it."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from omegaconf import OmegaConf
+
+    from hvc.algorithms.hl_learners import QueryLearner
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
+                                     value_mlp=(32, 1), critic_takes_action=True))
+    selector = SimpleNamespace(keys=np.zeros((5, 2), np.float32))
+    learner = QueryLearner(agent, OmegaConf.create({"target_update_period": 10}), OmegaConf.create({}),
+                           SimpleNamespace(low=-3.0, high=3.0), selector)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=3e-3)
+    batch = _continuous_batch()
+    batch["new_action"] = torch.zeros_like(batch["new_action"])  # no policy term: Q alone
+    first = learner.update(optimizer, batch, 0.9)["critic_loss"]
+    for _ in range(400):
+        last = learner.update(optimizer, batch, 0.9)["critic_loss"]
+    assert last < 0.05 * first
+    _, h, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
+                    agent.initial_state(4), done=batch["first"])
+    with torch.no_grad():
+        for key in ("query", "action"):
+            torch.testing.assert_close(agent.values(h[:-1], batch[key]), batch["reward"], atol=0.1, rtol=0)
+
+
+def test_vtrace_update_sets_rho_to_one_on_held_steps(monkeypatch):
+    """Held steps chose nothing, so their stored log mu must not weight the targets."""
+    from omegaconf import OmegaConf
+
+    import hvc.algorithms.hl_learners as hl_learners
+
+    seen = {}
+    original = hl_learners.vtrace_targets
+
+    def spy(log_rhos, *args, **kwargs):
+        seen["log_rhos"] = log_rhos.clone()
+        return original(log_rhos, *args, **kwargs)
+
+    monkeypatch.setattr(hl_learners, "vtrace_targets", spy)
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=4, discrete=True, lstm_size=16,
+                                     value_mlp=(16, 1)))
+    T, B = 4, 2
+    new_action = torch.tensor([[1.0, 1.0], [0.0, 0.0], [0.0, 1.0], [1.0, 0.0]])
+    batch = {"proprio": torch.randn(T + 1, B, 3), "task": torch.zeros(T + 1, B, 0),
+             "prev_reward": torch.zeros(T + 1, B), "prev_action": torch.zeros(T + 1, B, dtype=torch.long),
+             "first": torch.zeros(T + 1, B), "action": torch.zeros(T, B, dtype=torch.long),
+             "log_mu": torch.full((T, B), -9.0), "reward": torch.ones(T, B), "discount": torch.ones(T, B),
+             "new_action": new_action, "state": torch.zeros(B, 4, 128)}
+    hl_learners.vtrace_update(agent, torch.optim.Adam(agent.parameters()), batch, 0.9, 0.01,
+                              OmegaConf.create({"rho_clip": 1.0, "c_clip": 1.0}))
+    log_rhos = seen["log_rhos"]
+    assert torch.all(log_rhos[new_action == 0] == 0)
+    assert torch.all(log_rhos[new_action == 1] > 5)  # pi / mu with mu = e^-9

@@ -102,10 +102,11 @@ class Unrolls:
         return out
 
 
-def make_envs(cfg: DictConfig) -> VectorEnv:
-    """`cfg.num_envs` actors of the task with the configured controller and its experts."""
+def make_envs(cfg: DictConfig, seed: int | None = None) -> VectorEnv:
+    """`cfg.num_envs` actors of the task with the configured controller and its experts,
+    seeded `seed` (default cfg.seed), seed + 1, ..."""
     task, body, render = env_dicts(cfg)
-    envs = VectorEnv(task, body, render, cfg.num_envs, seed=cfg.seed,
+    envs = VectorEnv(task, body, render, cfg.num_envs, seed=int(cfg.seed if seed is None else seed),
                      controller=OmegaConf.to_container(cfg.controller, resolve=True), library=cfg.get("library"),
                      clip_set=str(cfg.clips.name))
     if envs.controller is None:
@@ -195,7 +196,10 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     hl, agent_cfg = cfg.hl, cfg.task.agent
     rng = np.random.default_rng(cfg.seed)
     torch.manual_seed(cfg.seed)
-    envs = make_envs(cfg)
+    checkpoint = run_dir / "checkpoint.pt"
+    state = load_checkpoint(checkpoint) if checkpoint.exists() else None
+    resumed_at = int(state["counters"]["env_steps"]) if state else 0
+    envs = make_envs(cfg, seed=int(cfg.seed) + resumed_at)  # resumed: new episodes, not the first ones again
     spec, agent, learner = build_agent(cfg, envs)
     vision = spec.vision
     discrete = spec.discrete
@@ -213,9 +217,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     prev_query = np.zeros((cfg.num_envs, spec.action_size), np.float32) if query else None
     counters = {"env_steps": 0, "updates": 0, "episodes": 0}
     update_credit = 0.0  # learner updates owed to the actors (algorithm.updates_per_unroll may be fractional)
-    checkpoint = run_dir / "checkpoint.pt"
-    if checkpoint.exists():
-        state = load_checkpoint(checkpoint)
+    if state is not None:
         agent.load_state_dict(state["agent"])
         optimizer.load_state_dict(state["optimizer"])
         for group in optimizer.param_groups:  # the configured rate, not the one saved with the optimiser
@@ -227,6 +229,8 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
             learner.steps = counters["updates"]  # keeps the target refresh schedule
         rng.bit_generator.state = json.loads(state["rng"])
         torch.set_rng_state(state["torch_rng"])
+        if query:
+            learner.rng = np.random.default_rng([int(cfg.seed), resumed_at])
         log.info("resumed from %s at env step %d (replay refills)", checkpoint, counters["env_steps"])
 
     def save() -> None:
