@@ -74,3 +74,54 @@ def test_steerable_tracking_task_draws_rates_and_shows_them():
         assert reward == pytest.approx(1.0, abs=1e-6)
     assert len(seen) == 5  # a new draw every episode
     env.close()
+
+
+def test_turn_from_turns_and_moves_only_the_rest_of_the_reference(cycle):
+    from hvc.mocap.steering import turn_from
+
+    ref, _ = steer_cycle(cycle, [0.5, 0.5])
+    before = {k: getattr(ref, k).copy() for k in ("quaternion", "velocity", "position", "angular_velocity")}
+    t, L = 10, cycle.num_steps
+    turn_from(ref, t, 0.7, np.array([5.0, -2.0]))
+    for k, v in before.items():
+        np.testing.assert_array_equal(getattr(ref, k)[:t], v[:t])  # the past is kept
+    np.testing.assert_array_equal(ref.angular_velocity, before["angular_velocity"])  # root frame
+    np.testing.assert_allclose(root_heading(ref.quaternion[t:]) - root_heading(before["quaternion"][t:]), 0.7,
+                               atol=1e-9)
+    np.testing.assert_allclose(ref.position[t, :2], [5.0, -2.0])
+    step = lambda p: np.linalg.norm(np.diff(p[t:, :2], axis=0), axis=1)  # noqa: E731
+    np.testing.assert_allclose(step(ref.position), step(before["position"]), atol=1e-9)  # the same path, turned
+    np.testing.assert_allclose(np.linalg.norm(ref.velocity[t:], axis=1),
+                               np.linalg.norm(before["velocity"][t:], axis=1), atol=1e-9)
+    assert L > t
+
+
+def test_each_steered_cycle_starts_from_the_body_heading():
+    """Whatever the body did in a cycle, the next cycle's reference starts where it faces."""
+    import mujoco
+
+    from conftest import plain_cfg
+    from hvc.config import compose
+    from hvc.envs.fast_env import FastEnv
+    from hvc.mocap.clip_sets import select_entry
+    from hvc.mocap.source import find_mocap_file
+
+    cfg = compose(["stage=lowlevel", "task=tracking", "clips=steerable"])
+    for reanchor in (True, False):
+        task, body, render = plain_cfg("stage=lowlevel", "task=tracking", "clips=steerable",
+                                       f"task.steer_reanchor={str(reanchor).lower()}")
+        task.update(clip=select_entry(cfg.clips, None).as_dict(), mocap_file=str(find_mocap_file(None, "2019")),
+                    random_start=False)
+        env = FastEnv.build(task, body, render, seed=0)
+        logic = env.layout.logic
+        logic.held_rate = 1.5  # the reference turns left; the body is driven straight, open loop
+        env.reset()
+        L = logic.cycle.num_steps
+        straight, _ = steer_cycle(logic.cycle, [0.0])
+        for t in range(L):
+            env.step(np.clip(logic.pose_to_actuation(straight.joints[min(t + 1, L - 1)]), -1, 1))
+        body_heading = float(root_heading(env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7][None])[0])
+        ref_heading = float(root_heading(logic.reference.quaternion[L][None])[0])
+        gap = abs((body_heading - ref_heading + np.pi) % (2 * np.pi) - np.pi)
+        assert (gap < 1e-6) if reanchor else (gap > 0.5), (reanchor, gap)
+        env.close()

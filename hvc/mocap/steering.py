@@ -51,3 +51,15 @@ def steer_cycle(cycle: Reference, rates: Sequence[float]) -> tuple[Reference, np
                     angular_velocity=np.asarray(angular), end_effectors=tile(cycle.end_effectors),
                     phase=np.tile(np.arange(length) / length, k))
     return ref, np.asarray(per_step_rate)
+
+
+def turn_from(ref: Reference, t: int, yaw: float, xy: np.ndarray) -> None:
+    """Turns the reference from step t on by `yaw` about the world z axis, in place, its root
+    path pivoting about step t's position, which moves to `xy`: the rest of the reference then
+    starts from a new heading and place. Root-frame features (angular velocity, joints, end
+    effectors) are unchanged by a turn about the vertical."""
+    turn = rot_z(yaw)
+    ref.quaternion[t:] = [quat_mul(yaw_quat(yaw), q) for q in ref.quaternion[t:]]
+    ref.velocity[t:] = ref.velocity[t:] @ turn.T
+    offset = ref.position[t:, :2] - ref.position[t, :2]
+    ref.position[t:, :2] = np.asarray(xy)[:2] + offset @ turn[:2, :2].T
