@@ -109,7 +109,7 @@ def test_each_steered_cycle_starts_from_the_body_heading():
     cfg = compose(["stage=lowlevel", "task=tracking", "clips=steerable"])
     for reanchor in (True, False):
         task, body, render = plain_cfg("stage=lowlevel", "task=tracking", "clips=steerable",
-                                       f"task.steer_reanchor={str(reanchor).lower()}")
+                                       f"task.reanchor={str(reanchor).lower()}")
         task.update(clip=select_entry(cfg.clips, None).as_dict(), mocap_file=str(find_mocap_file(None, "2019")),
                     random_start=False)
         env = FastEnv.build(task, body, render, seed=0)

@@ -116,3 +116,24 @@ def test_pretraining_labels_follow_each_episodes_own_walk(switching_env):
     last = logic.reference  # the third walk's
     next_poses = np.stack([np.clip(logic.pose_to_actuation(q), -1, 1) for q in last.joints[-5:]])
     np.testing.assert_allclose(actions[-5:], next_poses, atol=1e-6)
+
+
+def test_each_behaviour_of_a_walk_starts_from_the_body_heading(switching_env):
+    from hvc.mocap.clips import root_heading
+
+    env = switching_env
+    logic = env.layout.logic
+    logic.random_start = False
+    for _ in range(20):  # a walk whose first switch comes early enough to drive to
+        env.reset()
+        switches = np.flatnonzero(np.diff(logic.labels)) + 1
+        if len(switches) and switches[0] < 60:
+            break
+    assert logic.anchors == frozenset(switches.tolist())
+    first = int(switches[0])
+    for t in range(first):  # open loop, drifting off the reference's heading on the way
+        env.step(np.clip(logic.pose_to_actuation(logic.reference.joints[t + 1]), -1, 1) + 0.2)
+    body = root_heading(env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7][None])[0]
+    gap = (body - root_heading(logic.reference.quaternion[first][None])[0] + np.pi) % (2 * np.pi) - np.pi
+    assert abs(gap) < 1e-6
+    logic.random_start = True

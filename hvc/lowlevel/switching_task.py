@@ -3,6 +3,9 @@
 Each episode a Markov walk over the clip set's transition graph chains the behaviours'
 references, cut where poses match best (hvc.mocap.switching); the policy sees the phase
 and a 1-of-k code of the behaviour being tracked, which the high level later chooses.
+With `reanchor` (the default) each behaviour of the walk starts from the heading and place
+the body has reached (TrackingLogic.anchor), as the high level will switch from wherever
+the body is.
 """
 from __future__ import annotations
 
@@ -30,6 +33,8 @@ class SwitchingTrackingLogic(TrackingLogic):
     def reset(self, model, data, rng):
         self.reference, self.labels = markov_reference(self.behaviours, self.graph, self.steps, rng,
                                                            max_accel=self.max_accel)
+        if self.reanchor:  # each behaviour starts from where the body faces (TrackingLogic.anchor)
+            self.anchors = frozenset((np.flatnonzero(np.diff(self.labels)) + 1).tolist())
         super().reset(model, data, rng)
 
     def observation(self, model, data):

@@ -18,6 +18,7 @@ from hvc.envs.task_logic import TaskLogic, ContactTermination
 from hvc.lowlevel.reward import TrackingFeatures, TrackingReward
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference, find_cycle, from_clip, loop_cycle
+from hvc.mocap.steering import turn_from
 from hvc.rotations import quat_to_mat, rot_z
 
 # Bodies allowed to touch the ground: feet and hands (the paper's termination rule).
@@ -104,6 +105,11 @@ class TrackingLogic(TaskLogic):
         self.t = 0
         self.failure = False
         self.last_terms: dict[str, float] = {}
+        # steps at which the rest of the reference is turned and moved to where the body is
+        # (set per episode, with `reanchor`, by references made of parts: steered cycles,
+        # behaviour switches)
+        self.anchors: frozenset[int] = frozenset()
+        self.reanchor = bool(cfg.get("reanchor", True))
 
     # -- pose bookkeeping ------------------------------------------------------------
     def pose_to_actuation(self, joints: np.ndarray) -> np.ndarray:
@@ -144,7 +150,20 @@ class TrackingLogic(TaskLogic):
         self.set_reference_state(data, self.t)
         self.failure = False
 
+    def anchor(self, data, t: int) -> None:
+        """Turns and moves the reference from step t on so that it starts from the body's
+        heading and place: what follows is scored on the motion made from here, not on the
+        heading lag gathered before, which the egocentric policy cannot see and which, past
+        a fraction of a turn, holds the orientation term (weight 20 of 30) and so the reward
+        near zero whatever the policy does."""
+        body = data.qpos[self.root_qpos + 3:self.root_qpos + 7]
+        h_body, h_ref = (float(root_heading(q[None])[0]) for q in (body, self.reference.quaternion[t]))
+        yaw = (h_body - h_ref + np.pi) % (2 * np.pi) - np.pi
+        turn_from(self.reference, t, yaw, data.qpos[self.root_qpos:self.root_qpos + 2])
+
     def after_step(self, model, data, rng):
+        if self.t + 1 in self.anchors:
+            self.anchor(data, self.t + 1)
         self.t += 1
         self.body_now, self.reference_now = self.body_features(data), self.reference_features(self.t)
         self.failure = self.contact_failure(data) or (
