@@ -30,9 +30,14 @@ def _run(cfg: DictConfig) -> None:
         sys.exit(2)
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     if cfg.get("resume") is True:  # resume=true: the newest earlier run of this job
+        from hydra.types import RunMode
+
         from hvc.runtime.run_dirs import latest_run_dir
 
         try:
+            if HydraConfig.get().mode == RunMode.MULTIRUN:
+                raise ConfigError("resume=true picks one run; a sweep's jobs would all pick the same one: "
+                                  "resume each with resume=<run dir>")
             run_dir = latest_run_dir(OmegaConf.to_container(cfg, resolve=True), run_dir)
         except ConfigError as error:
             print(f"hvc-run: error: {error}", file=sys.stderr)

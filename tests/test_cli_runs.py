@@ -349,9 +349,13 @@ def test_resume_true_continues_the_newest_run_of_the_same_job(tmp_path):
                          capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert bad.returncode == 2 and "resume=true found no earlier run" in bad.stderr
     _run("total_steps=40", *common, cwd=tmp_path)
-    _run("total_steps=40", *common, "task=walls", cwd=tmp_path)  # newer, but another job
-    [run_dir] = [p for p in (tmp_path / "outputs" / "runs").glob("*/*_go_to_target_end_to_end")
-                 if (p / "checkpoint.pt").exists()]
+    _run("total_steps=40", *common, "seed=3", cwd=tmp_path)  # newer, but another job
+    run_dir, other = sorted(p for p in (tmp_path / "outputs" / "runs").glob("*/*_go_to_target_end_to_end")
+                            if (p / "checkpoint.pt").exists())  # seed 0's, then seed 3's
     _run("total_steps=80", *common, "resume=true", cwd=tmp_path)
     assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["counters"]["env_steps"] == 80
     assert len((run_dir / "commands.log").read_text().splitlines()) == 2
+    assert len((other / "commands.log").read_text().splitlines()) == 1
+    sweep = subprocess.run([sys.executable, "-m", "hvc.cli", "-m", "total_steps=40", *common, "seed=0,1",
+                            "resume=true"], capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert sweep.returncode == 2 and "resume=true picks one run" in sweep.stderr

@@ -89,18 +89,19 @@ def test_turn_from_turns_and_moves_only_the_rest_of_the_reference(cycle):
     np.testing.assert_allclose(root_heading(ref.quaternion[t:]) - root_heading(before["quaternion"][t:]), 0.7,
                                atol=1e-9)
     np.testing.assert_allclose(ref.position[t, :2], [5.0, -2.0])
-    step = lambda p: np.linalg.norm(np.diff(p[t:, :2], axis=0), axis=1)  # noqa: E731
-    np.testing.assert_allclose(step(ref.position), step(before["position"]), atol=1e-9)  # the same path, turned
-    np.testing.assert_allclose(np.linalg.norm(ref.velocity[t:], axis=1),
-                               np.linalg.norm(before["velocity"][t:], axis=1), atol=1e-9)
+    turn = np.array([[np.cos(0.7), -np.sin(0.7)], [np.sin(0.7), np.cos(0.7)]])  # counter-clockwise
+    np.testing.assert_allclose(ref.position[t:, :2] - ref.position[t, :2],
+                               (before["position"][t:, :2] - before["position"][t, :2]) @ turn.T, atol=1e-9)
+    np.testing.assert_allclose(ref.velocity[t:, :2], before["velocity"][t:, :2] @ turn.T, atol=1e-9)
+    np.testing.assert_allclose(ref.velocity[t:, 2], before["velocity"][t:, 2])
     assert L > t
 
 
 def test_each_steered_cycle_starts_from_the_body_heading():
     """Whatever the body did in a cycle, the next cycle's reference starts where it faces."""
-    import mujoco
-
     from conftest import plain_cfg
+    from hvc.lowlevel.reward import quat_log_norm
+    from hvc.rotations import quat_conj, quat_mul
     from hvc.config import compose
     from hvc.envs.fast_env import FastEnv
     from hvc.mocap.clip_sets import select_entry
@@ -122,6 +123,9 @@ def test_each_steered_cycle_starts_from_the_body_heading():
             env.step(np.clip(logic.pose_to_actuation(straight.joints[min(t + 1, L - 1)]), -1, 1))
         body_heading = float(root_heading(env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7][None])[0])
         ref_heading = float(root_heading(logic.reference.quaternion[L][None])[0])
+        body_q = env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7]
+        assert logic.t == L and logic.last_terms["ori"] == pytest.approx(  # this step's reward used it
+            quat_log_norm(quat_mul(body_q, quat_conj(logic.reference.quaternion[L]))), abs=1e-9)
         gap = abs((body_heading - ref_heading + np.pi) % (2 * np.pi) - np.pi)
         assert (gap < 1e-6) if reanchor else (gap > 0.5), (reanchor, gap)
         env.close()

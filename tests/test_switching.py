@@ -119,21 +119,28 @@ def test_pretraining_labels_follow_each_episodes_own_walk(switching_env):
 
 
 def test_each_behaviour_of_a_walk_starts_from_the_body_heading(switching_env):
+    from hvc.lowlevel.reward import quat_log_norm
     from hvc.mocap.clips import root_heading
+    from hvc.rotations import quat_conj, quat_mul
 
     env = switching_env
     logic = env.layout.logic
     logic.random_start = False
-    for _ in range(20):  # a walk whose first switch comes early enough to drive to
-        env.reset()
-        switches = np.flatnonzero(np.diff(logic.labels)) + 1
-        if len(switches) and switches[0] < 60:
-            break
-    assert logic.anchors == frozenset(switches.tolist())
-    first = int(switches[0])
-    for t in range(first):  # open loop, drifting off the reference's heading on the way
-        env.step(np.clip(logic.pose_to_actuation(logic.reference.joints[t + 1]), -1, 1) + 0.2)
-    body = root_heading(env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7][None])[0]
-    gap = (body - root_heading(logic.reference.quaternion[first][None])[0] + np.pi) % (2 * np.pi) - np.pi
-    assert abs(gap) < 1e-6
-    logic.random_start = True
+    try:
+        for _ in range(20):  # a walk whose first switch comes early enough to drive to
+            env.reset()
+            switches = np.flatnonzero(np.diff(logic.labels)) + 1
+            if len(switches) and switches[0] < 60:
+                break
+        assert logic.anchors == frozenset(switches.tolist())
+        first = int(switches[0])
+        for t in range(first):  # open loop, drifting off the reference's heading on the way
+            env.step(np.clip(logic.pose_to_actuation(logic.reference.joints[t + 1]), -1, 1) + 0.2)
+        body_q = env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7]
+        anchored = logic.reference.quaternion[first]
+        gap = root_heading(body_q[None])[0] - root_heading(anchored[None])[0]
+        assert abs((gap + np.pi) % (2 * np.pi) - np.pi) < 1e-6
+        assert logic.t == first and logic.last_terms["ori"] == pytest.approx(  # this step's reward used it
+            quat_log_norm(quat_mul(body_q, quat_conj(anchored))), abs=1e-9)
+    finally:
+        logic.random_start = True

@@ -18,6 +18,7 @@ import torch
 
 from hvc.agents.mlp import GaussianPolicy, QNetwork, gaussian_log_prob
 from hvc.algorithms.optim import clipped_step
+from hvc.errors import NonFiniteLoss
 from hvc.algorithms.retrace import retrace_targets, truncated_traces
 
 
@@ -81,13 +82,15 @@ class SVG0Retrace:
         weight = b.mask / b.mask.sum().clamp(min=1.0)
         q = self.critic(obs, b.actions)
         critic_loss = 0.5 * ((q - targets) ** 2 * weight).sum()
-        clipped_step(self.critic_opt, critic_loss, self.critic.parameters())
 
         mean = self.policy.mean(obs)
         action = mean + self.policy.sigma * torch.randn_like(mean)
-        q_pi = self.target_critic(obs, action)
+        q_pi = self.target_critic(obs, action)  # the target critic: the critic's step below does not change it
         kl = kl_fixed_sigma(mean, target_mean_all[:-1], self.policy.sigma)
         policy_loss = ((-q_pi + self.kl_cost * kl) * weight).sum()
+        if not (torch.isfinite(critic_loss) and torch.isfinite(policy_loss)):  # before either network moves
+            raise NonFiniteLoss(f"non-finite loss: critic {float(critic_loss)}, policy {float(policy_loss)}")
+        clipped_step(self.critic_opt, critic_loss, self.critic.parameters())
         if train_policy:
             clipped_step(self.policy_opt, policy_loss, self.policy.parameters())
 

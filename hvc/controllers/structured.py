@@ -72,8 +72,8 @@ class SteerableController:
 
 
 def gait_cycle_steps(behaviours) -> int:
-    """Steps of one gait cycle: the first cyclic behaviour's (the run's), where the switching
-    policy's training walks switched and its high level may switch."""
+    """Steps of one gait cycle: the first cyclic behaviour's (the run's), the paper's hold for
+    a switching choice ("switch points allowed at the end of gait cycles")."""
     for ref in behaviours:
         if ref.cyclic:
             return _cycle_length(ref.phase)

@@ -16,7 +16,7 @@ import numpy as np
 
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference
-from hvc.rotations import quat_mul, quat_to_mat, rot_z, yaw_quat
+from hvc.rotations import quat_mul, quat_to_mat, rot_z, yaw_quat, yaw_rotate
 
 
 def steer_cycle(cycle: Reference, rates: Sequence[float]) -> tuple[Reference, np.ndarray]:
@@ -59,7 +59,7 @@ def turn_from(ref: Reference, t: int, yaw: float, xy: np.ndarray) -> None:
     starts from a new heading and place. Root-frame features (angular velocity, joints, end
     effectors) are unchanged by a turn about the vertical."""
     turn = rot_z(yaw)
-    ref.quaternion[t:] = [quat_mul(yaw_quat(yaw), q) for q in ref.quaternion[t:]]
+    ref.quaternion[t:] = yaw_rotate(ref.quaternion[t:], yaw)
     ref.velocity[t:] = ref.velocity[t:] @ turn.T
     offset = ref.position[t:, :2] - ref.position[t, :2]
     ref.position[t:, :2] = np.asarray(xy)[:2] + offset @ turn[:2, :2].T

@@ -12,9 +12,9 @@ SVG(0) + Retrace (ContinuousLearner), query with a Wolpertinger-style learner
 (QueryLearner). `algorithm.updates_per_unroll` paces the learner against the actors. The x-axis of the paper's curves, transitions processed by the learner, is
 logged as `learner_steps`; env steps as `env_steps`.
 
-Checkpoints (agent, optimiser, counters, replay position, RNG states) every
-`hl.checkpoint_seconds` and on exit; `resume=<run dir>` continues. A non-finite loss
-stops the run naming the last good checkpoint.
+Checkpoints (agent, optimiser, target agent, counters, RNG states; not the replay, which
+refills) every `hl.checkpoint_seconds` and on exit; `resume=<run dir>` continues. A
+non-finite loss stops the run before the optimiser steps, so the exit checkpoint is good.
 """
 from __future__ import annotations
 
@@ -145,6 +145,7 @@ def build_agent(cfg: DictConfig, envs: VectorEnv) -> tuple[AgentSpec, HighLevelA
         lib = ExpertLibrary.load(library_path(cfg.get("library"), str(cfg.clips.name)))
         learner = QueryLearner(agent, cfg.algorithm, cfg.controller, space,
                                QueryController(lib, int(cfg.controller.fragment_len), int(cfg.controller.k_nearest)))
+        learner.rng = np.random.default_rng(int(cfg.seed))
     else:
         learner = None if space.discrete else ContinuousLearner(agent, cfg.algorithm, cfg.controller, space)
     return spec, agent, learner

@@ -82,8 +82,17 @@ def warm_start_policies(cfg: DictConfig, entries) -> dict[int, object]:
         return {}
     library = _library(source)
     frames = lambda e: (e["id"], int(e.get("start") or 0), e.get("end"), bool(e.get("cyclic")))  # noqa: E731
-    by_frames = {frames(e.entry): e.policy for e in library.experts}
-    found = {i: by_frames[frames(e.as_dict())] for i, e in enumerate(entries) if frames(e.as_dict()) in by_frames}
+    by_frames: dict[tuple, list] = {}
+    for expert in library.experts:
+        by_frames.setdefault(frames(expert.entry), []).append(expert)
+    found = {}
+    for i, entry in enumerate(entries):
+        candidates = by_frames.get(frames(entry.as_dict()), [])
+        if len(candidates) > 1:
+            raise ConfigError(f"lowlevel.warm_start={source} has {len(candidates)} experts of the frames of "
+                              f"{entry.id} ({[c.entry['behaviour'] for c in candidates]}); keep one in the library")
+        if candidates:
+            found[i] = candidates[0].policy
     have = sorted({frames(e.entry)[:3] for e in library.experts})
     if cfg.clips.get("switching"):
         missing = [e.id for i, e in enumerate(entries) if i not in found]

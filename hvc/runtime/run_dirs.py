@@ -1,9 +1,9 @@
 """Finding the run to continue for `resume=true`: the newest earlier run of the same job.
 
 Runs live in `outputs/runs/<date>/<time>_<task>_<controller>` (conf/config.yaml); a run is
-"the same job" when its resolved config has the same stage, task, controller and clip set,
-and it can be continued when it left a checkpoint (`checkpoint.pt`, or `experts/` for the
-low level).
+"the same job" when its resolved config has the same stage, task, controller, clip set,
+body, algorithm and seed, and it can be continued when it left a checkpoint (`checkpoint.pt`,
+or `experts/` for the low level).
 """
 from __future__ import annotations
 
@@ -16,9 +16,13 @@ from hvc.config import ConfigError
 RUNS_ROOT = Path("outputs") / "runs"
 
 
+JOB_KEYS = ("stage", "task", "controller", "clips", "body", "algorithm")
+
+
 def _job(config: dict) -> tuple:
-    return (config.get("stage"), (config.get("task") or {}).get("name"),
-            (config.get("controller") or {}).get("name"), (config.get("clips") or {}).get("name"))
+    named = tuple((config.get(k) or {}).get("name") if isinstance(config.get(k), dict) else config.get(k)
+                  for k in JOB_KEYS)
+    return (*named, config.get("seed"))
 
 
 def latest_run_dir(config: dict, current: Path, root: Path = RUNS_ROOT) -> Path:
@@ -33,6 +37,6 @@ def latest_run_dir(config: dict, current: Path, root: Path = RUNS_ROOT) -> Path:
             continue
         if _job(yaml.safe_load((run / "config_resolved.yaml").read_text()) or {}) == want:
             return run
-    stage, task, controller, clips = want
-    raise ConfigError(f"resume=true found no earlier run with a checkpoint of stage={stage} task={task} "
-                      f"controller={controller} clips={clips} under {root}/; pass resume=<run dir>")
+    job = " ".join(f"{k}={v}" for k, v in zip((*JOB_KEYS, "seed"), want))
+    raise ConfigError(f"resume=true found no earlier run with a checkpoint of {job} under {root}/; "
+                      f"pass resume=<run dir>")
