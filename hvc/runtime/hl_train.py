@@ -255,6 +255,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     losses: dict[str, float] = {}
     updates_per_unroll = float(cfg.algorithm.updates_per_unroll)
     start, last_save, last_log = time.perf_counter(), time.monotonic(), counters["env_steps"]
+    start_steps = counters["env_steps"]  # a resumed run's rate counts only its own steps
     bar = tqdm(total=int(cfg.total_steps), initial=counters["env_steps"], desc="hl train", unit="step",
                disable=None, mininterval=2.0)
     previous_sigterm = signal.signal(signal.SIGTERM, raise_interrupt)  # `kill` saves a checkpoint too
@@ -323,7 +324,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
             if counters["env_steps"] - last_log >= int(cfg.log_every):
                 last_log = counters["env_steps"]
                 row = {"episodes": counters["episodes"],
-                       "steps_per_second": (counters["env_steps"]) / (time.perf_counter() - start)}
+                       "steps_per_second": (counters["env_steps"] - start_steps) / (time.perf_counter() - start)}
                 if returns:
                     row["episode_return"] = float(np.mean(returns))
                     bar.set_postfix(ret=f"{row['episode_return']:.2f}")
