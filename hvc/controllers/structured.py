@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from hvc.controllers.base import ActionSpace
+from hvc.mocap.reference import cycle_steps
 
 
 def _actuator_order() -> np.ndarray:
@@ -28,16 +29,11 @@ def best_matching_step(joints: np.ndarray, proprio: np.ndarray, actuator_order: 
     return int(np.argmin(np.abs(joints[:, actuator_order] - body).mean(1)))
 
 
-def _cycle_length(phase: np.ndarray) -> int:
-    wraps = np.flatnonzero(np.diff(phase) < 0)
-    return int(wraps[0]) + 1 if len(wraps) else len(phase)
-
-
 class SteerableController:
     def __init__(self, expert, steering_range=(-1.5, 1.5)):
         self.expert = expert
         self.low, self.high = (float(v) for v in steering_range)
-        self.cycle = _cycle_length(expert.reference.phase)
+        self.cycle = cycle_steps(expert.reference.phase)
         self.phase = expert.reference.phase[:self.cycle]
         self.action_space = ActionSpace(discrete=False, size=1, low=self.low, high=self.high)
         self.actuator_order = _actuator_order()
@@ -76,7 +72,7 @@ def gait_cycle_steps(behaviours) -> int:
     a switching choice ("switch points allowed at the end of gait cycles")."""
     for ref in behaviours:
         if ref.cyclic:
-            return _cycle_length(ref.phase)
+            return cycle_steps(ref.phase)
     raise ValueError("no cyclic behaviour gives a gait cycle to hold the switching choice for; "
                      "set controller.hold_steps")
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from hvc.lowlevel.tracking import TrackingLogic
+from hvc.mocap.reference import cycle_steps
 from hvc.mocap.steering import steer_cycle
 
 
@@ -25,8 +26,7 @@ class SteerableTrackingLogic(TrackingLogic):
     def __init__(self, cfg, env):
         super().__init__(cfg, env)
         ref = self.reference  # the looped cycle: keep one repetition as the template
-        wrap = np.flatnonzero(np.diff(ref.phase) < 0)
-        self.cycle = ref.segment(0, int(wrap[0]) + 1 if len(wrap) else ref.num_steps)
+        self.cycle = ref.segment(0, cycle_steps(ref.phase))
         self.turn_rates = tuple(float(r) for r in cfg.get("turn_rates", (-1.5, 1.5)))
         self.cycles = int(cfg.get("cycle_repeats", 4))
         self.rates = np.zeros(self.cycle.num_steps * self.cycles)

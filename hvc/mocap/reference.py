@@ -44,6 +44,13 @@ class Reference:
                        phase=_linear_phase(len(self.joints[sl])) if not self.cyclic else self.phase[sl])
 
 
+def cycle_steps(phase: np.ndarray) -> int:
+    """Steps of a looped reference's first gait cycle (up to its phase's first wrap); the
+    whole length when it does not wrap."""
+    wraps = np.flatnonzero(np.diff(phase) < 0)
+    return int(wraps[0]) + 1 if len(wraps) else len(phase)
+
+
 def _linear_phase(n: int) -> np.ndarray:
     return np.linspace(0.0, 1.0, n) if n > 1 else np.zeros(n)
 
