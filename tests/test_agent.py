@@ -26,6 +26,38 @@ def test_agent_shapes_and_episode_resets():
     torch.testing.assert_close(h_reset[2:], h_fresh)
 
 
+def test_acting_step_by_step_matches_the_learner_s_sequence_call():
+    """Acting runs one step at a time (the lstm_cell path); the learner replays whole
+    unrolls (nn.LSTM): both must give the same outputs, states and gradients."""
+    torch.manual_seed(0)
+    spec = AgentSpec(proprio_size=12, task_size=3, action_size=2, discrete=False, lstm_size=64,
+                     value_mlp=(32, 1), critic_takes_action=True)
+    agent = HighLevelAgent(spec)
+    T, B = 5, 3
+    args = (torch.randn(T, B, 12), torch.randn(T, B, 3), torch.randn(T, B), torch.randn(T, B, 2))
+    done = torch.zeros(T, B)
+    done[3, 1] = 1
+    out_seq, h_seq, state_seq = agent(*args, agent.initial_state(B))
+    state, outs = agent.initial_state(B), []
+    for t in range(T):
+        out, _, state = agent(*(a[t:t + 1] for a in args), state)
+        outs.append(out)
+    out_steps = torch.cat(outs)
+    torch.testing.assert_close(out_steps, out_seq)
+    for a, b in zip(state, state_seq):
+        torch.testing.assert_close(a, b)
+    grad_seq = torch.autograd.grad(out_seq.sum(), agent.core.weight_hh_l0)[0]
+    grad_steps = torch.autograd.grad(out_steps.sum(), agent.core.weight_hh_l0)[0]
+    torch.testing.assert_close(grad_steps, grad_seq)
+    # with an episode start inside: one-step stretches in the learner take the same path
+    out_done, _, _ = agent(*args, agent.initial_state(B), done=done)
+    state, outs = agent.initial_state(B), []
+    for t in range(T):
+        out, _, state = agent(*(a[t:t + 1] for a in args), state, done=done[t:t + 1])
+        outs.append(out)
+    torch.testing.assert_close(torch.cat(outs), out_done)
+
+
 def test_vision_and_continuous_heads():
     spec = AgentSpec(proprio_size=136, task_size=0, action_size=1, discrete=False, lstm_size=256,
                      value_mlp=(200, 200, 1), vision=True, critic_takes_action=True)

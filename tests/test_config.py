@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from hvc.config import ConfigError, compose, group_options
+from hvc.config import ConfigError, compose, group_options, resolve_num_envs
 
 TASKS = group_options("task")
 CONTROLLERS = group_options("controller")
@@ -73,6 +73,17 @@ def test_unknown_group_option_names_the_allowed_ones():
     assert "moon_landing" in str(error.value) and "go_to_target" in str(error.value)
 
 
+@pytest.mark.parametrize("overrides, expected", [
+    (["body=rolling_ball", "controller=end_to_end", "num_envs=3"], 3),  # a cheap body: every env in process
+    (["num_envs=3"], 1),                                                # the humanoid: one, the rest in workers
+    (["num_envs=3", "in_process_envs=0"], 0),
+])
+def test_in_process_envs_auto_depends_on_the_body(overrides, expected):
+    cfg = compose(overrides)
+    resolve_num_envs(cfg)
+    assert cfg.num_envs == 3 and cfg.in_process_envs == expected
+
+
 def test_wrong_algorithm_for_controller_fails():
     with pytest.raises(ConfigError, match="allowed: vtrace"):
         compose(["controller=fragments", "algorithm=svg0_retrace"])
@@ -93,6 +104,8 @@ def _hvc_run(*args, cwd):
     (["task=tracking"], "stage=lowlevel"),
     (["algorithm.updates_per_unroll=0"], "algorithm.updates_per_unroll=0"),
     (["num_envs=0"], "num_envs=0 must be a positive integer or auto"),
+    (["in_process_envs=-1"], "in_process_envs=-1 must be an integer from 0 to num_envs, or auto"),
+    (["num_envs=2", "in_process_envs=3"], "in_process_envs=3 exceeds num_envs=2"),
     (["stage=lowlevel", "task=tracking", "task.termination_error=-0.1"], "task.termination_error=-0.1 must be"),
     (["controller=fragments", "task=gaps", "library=null", "clips=gaps", "num_envs=1"], "stage=lowlevel clips=gaps"),
 ])

@@ -21,6 +21,27 @@ def test_vector_env_steps_autoresets_and_closes():
     assert not any(p.is_alive() for p in procs)
 
 
+def test_envs_stepped_in_the_main_process_match_worker_envs():
+    """Seeds follow the env index wherever it runs: the same actions give the same steps."""
+    task, body, render = plain_cfg("task=go_to_target")
+    actions = np.random.default_rng(1).uniform(-1, 1, (40, 3, 56))
+    runs = []
+    for in_process in (0, 2):
+        with VectorEnv(task, body, render, num_envs=3, seed=7, in_process=in_process) as env:
+            assert len(env._procs) == 3 - in_process
+            obs, steps = env.reset(), []
+            for action in actions:
+                obs, rewards, discounts, dones, infos = env.step(action)
+                steps.append((obs["proprio"].copy(), rewards, dones, [i.get("episode_return") for i in infos]))
+        runs.append(steps)
+    for (o0, r0, d0, i0), (o1, r1, d1, i1) in zip(*runs):
+        np.testing.assert_array_equal(o0, o1)
+        np.testing.assert_array_equal(r0, r1)
+        np.testing.assert_array_equal(d0, d1)
+        assert i0 == i1
+    assert any(any(d) for _, _, d, _ in runs[0])  # episodes ended and reset on both sides
+
+
 def test_worker_failure_names_the_worker_and_task():
     task, body, render = plain_cfg("task=gaps", "task.layout_pool=1")
     env = VectorEnv(task, body, render, num_envs=2, seed=0)

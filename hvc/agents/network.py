@@ -105,6 +105,17 @@ class RunningNormalizer(nn.Module):
         return torch.clamp(scaled, -5.0, 5.0)
 
 
+def _run_lstm(lstm: nn.LSTM, x: torch.Tensor, h: torch.Tensor, c: torch.Tensor):
+    """A one-layer nn.LSTM over x [T, B, I]. A single step (what acting does every control
+    step) goes through torch.lstm_cell with the same weights: the same maths at a third of
+    nn.LSTM's per-call overhead (about 35 against 105 us at batch 2, size 128)."""
+    if x.shape[0] != 1:
+        return lstm(x, (h, c))
+    h1, c1 = torch.lstm_cell(x[0], (h[0], c[0]), lstm.weight_ih_l0, lstm.weight_hh_l0,
+                             lstm.bias_ih_l0, lstm.bias_hh_l0)
+    return h1[None], (h1[None], c1[None])
+
+
 class HighLevelAgent(nn.Module):
     def __init__(self, spec: AgentSpec):
         super().__init__()
@@ -146,8 +157,8 @@ class HighLevelAgent(nn.Module):
             if done is not None:
                 keep = (1.0 - done[t0].float())[None, :, None]
                 h_c, c_c, h_p, c_p = h_c * keep, c_c * keep, h_p * keep, c_p * keep
-            out, (h_c, c_c) = self.core(x[t0:t1], (h_c, c_c))
-            pol, (h_p, c_p) = self.policy_core(out, (h_p, c_p))
+            out, (h_c, c_c) = _run_lstm(self.core, x[t0:t1], h_c, c_c)
+            pol, (h_p, c_p) = _run_lstm(self.policy_core, out, h_p, c_p)
             core_out.append(out)
             policy_out.append(pol)
         h = torch.cat(core_out, 0)

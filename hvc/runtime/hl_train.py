@@ -108,7 +108,7 @@ def make_envs(cfg: DictConfig, seed: int | None = None) -> VectorEnv:
     task, body, render = env_dicts(cfg)
     envs = VectorEnv(task, body, render, cfg.num_envs, seed=int(cfg.seed if seed is None else seed),
                      controller=OmegaConf.to_container(cfg.controller, resolve=True), library=cfg.get("library"),
-                     clip_set=str(cfg.clips.name))
+                     clip_set=str(cfg.clips.name), in_process=int(cfg.in_process_envs))
     if envs.controller is None:
         envs.close()
         raise ControllerUnavailable(f"controller={cfg.controller.name} could not be built: {envs.why_no_controller}")

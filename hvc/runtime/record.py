@@ -38,7 +38,7 @@ def trained_config(cfg: DictConfig) -> DictConfig:
         raise HvcUserError(f"from_run={source} is a stage={trained.stage} run; stage=record plays stage=train runs")
     if int(cfg.record_episodes) <= 0:
         raise HvcUserError(f"stage=record needs record_episodes=N with N > 0, got {cfg.record_episodes}")
-    return OmegaConf.merge(trained, {"num_envs": 1, "seed": int(cfg.seed),
+    return OmegaConf.merge(trained, {"num_envs": 1, "in_process_envs": 1, "seed": int(cfg.seed),
                                      "record_episodes": int(cfg.record_episodes)})
 
 

@@ -38,7 +38,7 @@ def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
                  disable=None, mininterval=1.0) as bar:
         env = VectorEnv(task, body, render, cfg.num_envs, seed=cfg.seed,
                         controller=OmegaConf.to_container(cfg.controller, resolve=True),
-                        library=cfg.get("library"), clip_set=str(cfg.clips.name))
+                        library=cfg.get("library"), clip_set=str(cfg.clips.name), in_process=int(cfg.in_process_envs))
         if env.controller is None:
             log.warning("rollout drives the body with random actions: %s", env.why_no_controller)
         else:
