@@ -6,7 +6,10 @@ resets, dm_control composer's on the same task, and the mean reset time of each.
 64x64 camera frames/s on gaps with the default and the fast render settings, and the
 time of one low-level expert's action (numpy float32, hidden 256) against its 30 us goal,
 and for fragments on go_to_target and gaps the actor's env steps/s (env + experts + camera)
-and the V-trace learner's transitions/s at the task's Table A.1 sizes.
+and the V-trace learner's transitions/s at the task's Table A.1 sizes. Last, two envs of the
+rolling ball (end_to_end) and of the humanoid (fragments) stepped by VectorEnv with 0, 1 or 2
+of them in the main process, against twice one env's rate stepped directly (the ceiling of
+two cores).
 Ratios, not absolute times, are the numbers to compare across machines.
 """
 from __future__ import annotations
@@ -200,6 +203,41 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, float]:
     return actor_sps, learner_tps
 
 
+def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> tuple[float, dict[int, float]]:
+    """(ceiling: num_envs x one env's steps/s, {in_process: env steps/s of VectorEnv}) with
+    random high-level actions, measured in interleaved blocks so that the machine's drift
+    hits every variant alike."""
+    from omegaconf import OmegaConf
+
+    from hvc.envs.vector_env import VectorEnv
+    from hvc.runtime.env_config import env_dicts
+
+    cfg = compose(overrides)
+    task, body, render = env_dicts(cfg)
+    controller = OmegaConf.to_container(cfg.controller, resolve=True)
+    variants = {key: VectorEnv(task, body, render, n, seed=0, controller=controller, clip_set=str(cfg.clips.name),
+                               in_process=in_process)
+                for key, n, in_process in [("single", 1, 1)] + [(k, num_envs, k) for k in range(num_envs + 1)]}
+    rng = np.random.default_rng(0)
+    elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
+    try:
+        for envs in variants.values():
+            envs.reset()
+        blocks = 5
+        for _ in range(blocks):
+            for key, envs in variants.items():
+                t0 = time.perf_counter()
+                while time.perf_counter() - t0 < seconds / blocks:
+                    envs.step(envs.random_actions(rng))
+                    steps[key] += envs.num_envs
+                elapsed[key] += time.perf_counter() - t0
+    finally:
+        for envs in variants.values():
+            envs.close()
+    rate = {key: steps[key] / elapsed[key] for key in variants}
+    return num_envs * rate.pop("single"), rate
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
@@ -233,6 +271,10 @@ def main(argv=None) -> None:
         for settings in ("default", "fast"):
             lines.append(f"bench render task=gaps settings={settings} size=64x64 "
                          f"fps={render_fps(settings, args.seconds):.0f}")
+    for overrides in (["body=rolling_ball", "controller=end_to_end"], ["controller=fragments"]):
+        ceiling, rates = vector_env_sps(overrides + ["task=go_to_target"], args.seconds)
+        lines.append(f"bench vector_env {' '.join(overrides)} num_envs=2 ceiling_sps={ceiling:.0f} " + " ".join(
+            f"in_process={k}:sps={v:.0f},ratio={v / ceiling:.2f}" for k, v in rates.items()))
     print()
     for line in lines:
         print(line)

@@ -13,3 +13,6 @@ def test_bench_prints_every_measurement_line():
     for task in ("go_to_target", "gaps"):
         assert re.search(rf"bench hl task={task} controller=fragments actor_sps=\d+ learner_tps=\d+", out)
     assert re.search(r"bench expert_inference hidden=256 us_per_step=[\d.]+ goal_us=30", out)
+    for body in ("body=rolling_ball controller=end_to_end", "controller=fragments"):
+        assert re.search(rf"bench vector_env {body} num_envs=2 ceiling_sps=\d+ in_process=0:sps=\d+,ratio=[\d.]+ "
+                         rf"in_process=1:sps=\d+,ratio=[\d.]+ in_process=2:sps=\d+,ratio=[\d.]+", out)
