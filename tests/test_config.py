@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from hvc.config import ConfigError, compose, group_options, resolve_num_envs
+from hvc.config import CHEAP_BODY_ENVS, ConfigError, compose, group_options, resolve_num_envs
 
 TASKS = group_options("task")
 CONTROLLERS = group_options("controller")
@@ -82,6 +82,16 @@ def test_in_process_envs_auto_depends_on_the_body(overrides, expected):
     cfg = compose(overrides)
     resolve_num_envs(cfg)
     assert cfg.num_envs == 3 and cfg.in_process_envs == expected
+
+
+def test_num_envs_auto_is_one_per_core_for_the_humanoid_and_more_for_the_rolling_ball():
+    import os
+
+    humanoid, ball = compose([]), compose(["body=rolling_ball", "controller=end_to_end"])
+    for cfg in (humanoid, ball):
+        resolve_num_envs(cfg)
+    assert humanoid.num_envs == len(os.sched_getaffinity(0)) and humanoid.in_process_envs == 1
+    assert ball.num_envs == CHEAP_BODY_ENVS == ball.in_process_envs
 
 
 def test_wrong_algorithm_for_controller_fails():
