@@ -215,12 +215,13 @@ def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
     cfg = compose(overrides)
     task, body, render = env_dicts(cfg)
     controller = OmegaConf.to_container(cfg.controller, resolve=True)
-    variants = {key: VectorEnv(task, body, render, n, seed=0, controller=controller, clip_set=str(cfg.clips.name),
-                               in_process=in_process)
-                for key, n, in_process in [("single", 1, 1)] + [(k, num_envs, k) for k in range(num_envs + 1)]}
+    variants: dict = {}
     rng = np.random.default_rng(0)
-    elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
     try:
+        for key, n, in_process in [("single", 1, 1)] + [(k, num_envs, k) for k in range(num_envs + 1)]:
+            variants[key] = VectorEnv(task, body, render, n, seed=0, controller=controller,
+                                      clip_set=str(cfg.clips.name), in_process=in_process)
+        elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
         for envs in variants.values():
             envs.reset()
         blocks = 5

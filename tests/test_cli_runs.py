@@ -59,7 +59,8 @@ def test_video_is_written_when_asked(tmp_path, task):
 
 
 def test_rolling_ball_end_to_end_with_two_env_workers(tmp_path):
-    _run("stage=rollout", "body=rolling_ball", "controller=end_to_end", "num_envs=2", "total_steps=40", cwd=tmp_path)
+    _run("stage=rollout", "body=rolling_ball", "controller=end_to_end", "num_envs=2", "in_process_envs=0",
+         "total_steps=40", cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     assert "end_to_end" in run_dir.name
     assert pd.read_csv(run_dir / "metrics.csv").env_steps.max() == 40

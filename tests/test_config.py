@@ -76,7 +76,8 @@ def test_unknown_group_option_names_the_allowed_ones():
 @pytest.mark.parametrize("overrides, expected", [
     (["body=rolling_ball", "controller=end_to_end", "num_envs=3"], 3),  # a cheap body: every env in process
     (["num_envs=3"], 1),                                                # the humanoid: one, the rest in workers
-    (["num_envs=3", "in_process_envs=0"], 0),
+    (["num_envs=3", "in_process_envs=0"], 0),                          # an explicit number is kept
+    (["body=rolling_ball", "controller=end_to_end", "task=walls", "num_envs=3"], 1),  # the camera: workers
 ])
 def test_in_process_envs_auto_depends_on_the_body(overrides, expected):
     cfg = compose(overrides)

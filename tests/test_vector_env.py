@@ -21,18 +21,25 @@ def test_vector_env_steps_autoresets_and_closes():
     assert not any(p.is_alive() for p in procs)
 
 
-def test_envs_stepped_in_the_main_process_match_worker_envs():
-    """Seeds follow the env index wherever it runs: the same actions give the same steps."""
+@pytest.mark.parametrize("controller", [None, "fragments"])
+def test_envs_stepped_in_the_main_process_match_worker_envs(controller):
+    """Seeds follow the env index wherever it runs: the same actions give the same steps,
+    controller infos included."""
+    from omegaconf import OmegaConf
+
+    from hvc.config import compose
+
     task, body, render = plain_cfg("task=go_to_target")
-    actions = np.random.default_rng(1).uniform(-1, 1, (40, 3, 56))
+    ctrl = OmegaConf.to_container(compose(["controller=fragments"]).controller, resolve=True) if controller else None
     runs = []
     for in_process in (0, 2):
-        with VectorEnv(task, body, render, num_envs=3, seed=7, in_process=in_process) as env:
+        rng = np.random.default_rng(1)
+        with VectorEnv(task, body, render, num_envs=3, seed=7, controller=ctrl, in_process=in_process) as env:
             assert len(env._procs) == 3 - in_process
             obs, steps = env.reset(), []
-            for action in actions:
-                obs, rewards, discounts, dones, infos = env.step(action)
-                steps.append((obs["proprio"].copy(), rewards, dones, [i.get("episode_return") for i in infos]))
+            for _ in range(40):
+                obs, rewards, discounts, dones, infos = env.step(env.random_actions(rng))
+                steps.append((obs["proprio"].copy(), rewards, dones, infos))
         runs.append(steps)
     for (o0, r0, d0, i0), (o1, r1, d1, i1) in zip(*runs):
         np.testing.assert_array_equal(o0, o1)
@@ -40,6 +47,22 @@ def test_envs_stepped_in_the_main_process_match_worker_envs():
         np.testing.assert_array_equal(d0, d1)
         assert i0 == i1
     assert any(any(d) for _, _, d, _ in runs[0])  # episodes ended and reset on both sides
+    if controller:
+        assert all("new_action" in info and "hl_action" in info for step in runs[1] for info in step[3])
+
+
+def test_an_in_process_env_failure_names_the_env_and_closes_the_workers(monkeypatch):
+    task, body, render = plain_cfg("task=go_to_target")
+    env = VectorEnv(task, body, render, num_envs=2, seed=0, in_process=1)
+    env.reset()
+
+    def broken(action):
+        raise FloatingPointError("simulated physics blow-up")
+
+    monkeypatch.setattr(env._hosts[0], "step", broken)
+    with pytest.raises(WorkerError, match=r"env 1 \(task=go_to_target, in the main process\).*blow-up"):
+        env.step(np.zeros((2, env.action_size)))
+    assert env.closed and not env._procs[0].is_alive()
 
 
 def test_worker_failure_names_the_worker_and_task():

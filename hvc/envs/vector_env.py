@@ -2,10 +2,11 @@
 some stepped by the main process itself while the workers step theirs.
 
 Why the main process steps envs too: a step waits for the slowest env, and waking a
-worker and shipping its result through a pipe costs about as much as a rolling ball's
-physics step on these machines (a 2-core VM: 670 us per step for 2 workers against 170 us
-of physics each). The main process idles during that wait; stepping one env itself uses
-the wait, and leaves one fewer process to wake.
+worker and shipping its result through a pipe costs more than a rolling ball's physics
+step on these machines (a 2-core VM: two rolling-ball envs stepped in 600 us through two
+workers, whose own steps took 170 us each, and in 180 us in the main process). The main
+process idles during that wait; stepping envs itself uses the wait, and leaves fewer
+processes to wake.
 
 Spawn, not fork: each worker imports mujoco and creates its GL context itself, which
 is what EGL and OSMesa need. Workers ignore SIGINT so Ctrl-C reaches only the parent,
@@ -104,7 +105,7 @@ def _worker(conn, index: int, task, body, render_settings, seed: int, controller
 
 
 class VectorEnv:
-    """`num_envs` FastEnvs stepping in parallel; auto-resets finished episodes.
+    """`num_envs` FastEnvs stepped together; auto-resets finished episodes.
 
     `step(actions)` returns stacked observations, rewards, discounts, dones and a list of
     per-env info dicts holding `episode_return`/`episode_length` when an episode ended.
@@ -182,17 +183,32 @@ class VectorEnv:
     def _stack(observations: list[dict]) -> dict[str, np.ndarray]:
         return {k: np.stack([o[k] for o in observations]) for k in observations[0]}
 
+    def _in_process(self, command: str, actions=None) -> list:
+        """`command` on every in-process env. A failure closes everything (the workers hold
+        replies to the same command that no one will read) and names the env and task."""
+        results = []
+        try:
+            for j, host in enumerate(self._hosts):
+                results.append(host.reset() if command == "reset"
+                               else host.step(np.asarray(actions[len(self._conns) + j])))
+        except Exception as error:
+            index = len(self._conns) + len(results)
+            self.close()
+            raise WorkerError(f"env {index} (task={self.task_name}, in the main process) failed: "
+                              f"{type(error).__name__}: {error}") from error
+        return results
+
     def reset(self) -> dict[str, np.ndarray]:
         for i in range(len(self._conns)):
             self._send(i, ("reset", None))
-        here = [host.reset() for host in self._hosts]
+        here = self._in_process("reset")
         return self._stack([self._receive(i) for i in range(len(self._conns))] + here)
 
     def step(self, actions: np.ndarray):
         workers = len(self._conns)
         for i in range(workers):
             self._send(i, ("step", np.asarray(actions[i])))
-        here = [host.step(np.asarray(action)) for host, action in zip(self._hosts, actions[workers:])]
+        here = self._in_process("step", actions)
         results = [self._receive(i) for i in range(workers)] + here
         obs, rewards, discounts, dones, infos = zip(*results)
         return (self._stack(list(obs)), np.asarray(rewards, np.float32), np.asarray(discounts, np.float32),

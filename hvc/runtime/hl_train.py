@@ -1,7 +1,8 @@
 """High-level training (`stage=train`, the main job) for every controller type.
 
-Actors: `num_envs` worker processes (hvc.envs.vector_env) each run the env, its
-controller and the low-level experts; the high-level policy runs batched in this
+Actors: `num_envs` envs (hvc.envs.vector_env; `in_process_envs` of them stepped by this
+process, the rest by worker processes) each run the env, its controller and the
+low-level experts; the high-level policy runs batched in this
 process (central inference, as in SEED RL: on a 2-core machine one torch copy per actor
 only competes for the cores). Fixed-length unrolls (Table A.1 `unroll`) with the LSTM
 state at their start go into a replay buffer (Table A.1 `replay_size`, in transitions);
