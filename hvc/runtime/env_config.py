@@ -39,6 +39,18 @@ def _with_start_poses(cfg: DictConfig, task: dict, body: dict) -> dict:
     return task
 
 
+def vector_env(cfg: DictConfig, seed: int | None = None):
+    """`cfg.num_envs` envs of the configured task, body and controller (with its experts),
+    seeded `seed` (default cfg.seed), seed + 1, ...; the one place a run's VectorEnv is built.
+    Its `controller` is None when the controller cannot be built (the caller decides)."""
+    from hvc.envs.vector_env import VectorEnv
+
+    task, body, render = env_dicts(cfg)
+    return VectorEnv(task, body, render, int(cfg.num_envs), seed=int(cfg.seed if seed is None else seed),
+                     controller=_plain(cfg.controller), library=cfg.get("library"),
+                     clip_set=str(cfg.clips.name), in_process=int(cfg.in_process_envs))
+
+
 def env_dicts(cfg: DictConfig, entry=None, tracking: bool = False,
               with_mocap: bool = True) -> tuple[dict, dict, dict]:
     """`tracking=True` builds the tracking task whatever `task` says (playback, openloop);

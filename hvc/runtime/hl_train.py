@@ -29,14 +29,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm import tqdm
 
 from hvc.agents.network import AgentSpec, HighLevelAgent, RunningNormalizer
 from hvc.algorithms.hl_learners import ContinuousLearner, QueryLearner, pack_state, vtrace_update
 from hvc.envs.vector_env import VectorEnv
 from hvc.errors import ControllerUnavailable, HvcUserError, NonFiniteLoss
-from hvc.runtime.env_config import env_dicts
+from hvc.runtime.env_config import vector_env
 from hvc.runtime.episodes import EpisodeRecorder
 from hvc.runtime.metrics import MetricsLogger
 from hvc.runtime.signals import raise_interrupt
@@ -106,10 +106,7 @@ class Unrolls:
 def make_envs(cfg: DictConfig, seed: int | None = None) -> VectorEnv:
     """`cfg.num_envs` actors of the task with the configured controller and its experts,
     seeded `seed` (default cfg.seed), seed + 1, ..."""
-    task, body, render = env_dicts(cfg)
-    envs = VectorEnv(task, body, render, cfg.num_envs, seed=int(cfg.seed if seed is None else seed),
-                     controller=OmegaConf.to_container(cfg.controller, resolve=True), library=cfg.get("library"),
-                     clip_set=str(cfg.clips.name), in_process=int(cfg.in_process_envs))
+    envs = vector_env(cfg, seed)
     if envs.controller is None:
         envs.close()
         raise ControllerUnavailable(f"controller={cfg.controller.name} could not be built: {envs.why_no_controller}")

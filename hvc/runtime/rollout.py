@@ -12,13 +12,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm import tqdm
 
 from hvc.envs.fast_env import FastEnv
 from hvc.envs.render import CameraRenderer
-from hvc.envs.vector_env import VectorEnv
-from hvc.runtime.env_config import env_dicts
+from hvc.runtime.env_config import env_dicts, vector_env
 from hvc.runtime.episodes import EpisodeRecorder, write_fragment_table
 from hvc.runtime.metrics import MetricsLogger
 from hvc.runtime.video import write_video
@@ -28,17 +27,14 @@ VIDEO_CAMERAS = ("walker/back", "walker/side", "walker/egocentric")
 
 
 def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
-    task, body, render = env_dicts(cfg)
     rng = np.random.default_rng(cfg.seed)
     returns: list[float] = []
     steps = 0
     start = time.perf_counter()
     with MetricsLogger(run_dir / "metrics.csv") as metrics, \
-            tqdm(total=cfg.total_steps, desc=f"rollout {task['name']}", unit="step",
+            tqdm(total=cfg.total_steps, desc=f"rollout {cfg.task.name}", unit="step",
                  disable=None, mininterval=1.0) as bar:
-        env = VectorEnv(task, body, render, cfg.num_envs, seed=cfg.seed,
-                        controller=OmegaConf.to_container(cfg.controller, resolve=True),
-                        library=cfg.get("library"), clip_set=str(cfg.clips.name), in_process=int(cfg.in_process_envs))
+        env = vector_env(cfg)
         if env.controller is None:
             log.warning("rollout drives the body with random actions: %s", env.why_no_controller)
         else:
