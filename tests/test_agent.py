@@ -111,7 +111,7 @@ def test_continuous_policy_stays_steerable_under_a_critic_that_prefers_a_bound()
     sigma_raw = torch.full((1,), -30.0, requires_grad=True)  # deep below the floor
     _, sigma = agent.gaussian(torch.cat([torch.zeros(1), sigma_raw]), -1.0, 1.0)
     sigma.sum().backward()
-    assert np.isclose(float(sigma), 0.1) and sigma_raw.grad.abs() > 0
+    assert np.isclose(float(sigma.detach()), 0.1) and sigma_raw.grad.abs() > 0
 
 
 def test_running_normalizer_matches_the_statistics_of_all_inputs_seen():
