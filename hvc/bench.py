@@ -159,8 +159,9 @@ def _bench_library():
     return ExpertLibrary(experts, {})
 
 
-def hl_throughput(task_name: str, seconds: float) -> tuple[float, float]:
-    """(actor env steps/s through the fragments controller, learner transitions/s of V-trace)."""
+def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, float]]:
+    """(actor env steps/s through the fragments controller, {torch threads: learner
+    transitions/s of V-trace})."""
     import torch
 
     from hvc.agents.network import AgentSpec, HighLevelAgent
@@ -195,12 +196,21 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, float]:
     replay.size = replay.capacity
     replay.action[:] = rng.integers(0, spec.action_size, replay.action.shape)
     replay.new_action[:] = 1.0
-    updates, t0 = 0, time.perf_counter()
-    while time.perf_counter() - t0 < seconds or updates < 2:
-        vtrace_update(agent, optimizer, replay.sample(batch, rng), 0.99, 0.01, cfg.algorithm)
-        updates += 1
-    learner_tps = updates * batch * unroll / (time.perf_counter() - t0)
-    return actor_sps, learner_tps
+    # the learner at one thread and, on vision tasks, at torch_threads=auto's every core,
+    # in interleaved blocks so that the machine's drift hits both alike
+    thread_counts = sorted({1, int(cfg.torch_threads)})
+    updates, elapsed = dict.fromkeys(thread_counts, 0), dict.fromkeys(thread_counts, 0.0)
+    blocks = 3
+    for _ in range(blocks):
+        for threads in thread_counts:
+            torch.set_num_threads(threads)
+            t0 = time.perf_counter()
+            while time.perf_counter() - t0 < seconds / blocks or updates[threads] < 2:
+                vtrace_update(agent, optimizer, replay.sample(batch, rng), 0.99, 0.01, cfg.algorithm)
+                updates[threads] += 1
+            elapsed[threads] += time.perf_counter() - t0
+    torch.set_num_threads(1)
+    return actor_sps, {threads: updates[threads] * batch * unroll / elapsed[threads] for threads in thread_counts}
 
 
 def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> tuple[float, dict[int, float]]:
@@ -265,7 +275,8 @@ def main(argv=None) -> None:
                      f"reset_ms={reset_ms:.2f} composer_reset_ms={comp_reset:.1f}")
     for name in ("go_to_target", "gaps"):
         actor, learner = hl_throughput(name, args.seconds)
-        lines.append(f"bench hl task={name} controller=fragments actor_sps={actor:.0f} learner_tps={learner:.0f}")
+        lines.append(f"bench hl task={name} controller=fragments actor_sps={actor:.0f} learner_tps={learner[1]:.0f}"
+                     + "".join(f" learner_tps_{k}_threads={v:.0f}" for k, v in learner.items() if k > 1))
     us = expert_inference_us(256, args.seconds)
     lines.append(f"bench expert_inference hidden=256 us_per_step={us:.1f} goal_us=30 ratio={us / 30:.2f}")
     if not args.no_render:

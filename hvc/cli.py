@@ -10,7 +10,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from hvc.config import CONF_DIR, ConfigError, check_group_overrides, resolve_num_envs, validate
+from hvc.config import CONF_DIR, ConfigError, check_group_overrides, resolve_parallelism, validate
 from hvc.errors import HvcUserError
 from hvc.provenance import record_command
 
@@ -24,7 +24,7 @@ USER_ERRORS = (FileNotFoundError, HvcUserError, ConfigError)
 def _run(cfg: DictConfig) -> None:
     try:
         validate(cfg)
-        resolve_num_envs(cfg)
+        resolve_parallelism(cfg)
     except ConfigError as error:
         print(f"hvc-run: error: {error}", file=sys.stderr)
         sys.exit(2)

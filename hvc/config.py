@@ -60,8 +60,13 @@ def _positive_int(cfg: DictConfig, key: str) -> None:
 CHEAP_BODY_ENVS = 8  # num_envs=auto for a body without motion-capture skills (the rolling ball)
 
 
-def resolve_num_envs(cfg: DictConfig) -> None:
-    """`num_envs=auto` and `in_process_envs=auto` become numbers, so run dirs record them.
+def _cores() -> int:
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
+def resolve_parallelism(cfg: DictConfig) -> None:
+    """`num_envs`, `in_process_envs` and `torch_threads` set to auto become numbers, so run
+    dirs record them.
 
     For the humanoid, and for any body on a vision task: one env per core, one of them in the
     main process (steps with the low-level experts or a camera are long enough for a worker
@@ -74,13 +79,17 @@ def resolve_num_envs(cfg: DictConfig) -> None:
     43, 66 and 3.5 (random: about 40)."""
     cheap = not cfg.body.humanoid and not cfg.task.vision
     if cfg.num_envs == "auto":
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-        cfg.num_envs = CHEAP_BODY_ENVS if cheap else max(1, cores or 1)
+        cfg.num_envs = CHEAP_BODY_ENVS if cheap else _cores()
     if cfg.in_process_envs == "auto":
         cfg.in_process_envs = cfg.num_envs if cheap else 1
     if cfg.in_process_envs > cfg.num_envs:
         raise ConfigError(f"in_process_envs={cfg.in_process_envs} exceeds num_envs={cfg.num_envs}; "
                           f"allowed: 0 to num_envs")
+    if cfg.torch_threads == "auto":
+        # The main process's torch work (acting, learner updates) runs while the worker envs
+        # wait for their next step, so on a vision task the ResNet's convs can take every core.
+        # Without vision the ops are small (LSTMs and MLPs at batch 32) and one thread is quicker.
+        cfg.torch_threads = _cores() if cfg.task.vision else 1
 
 
 def validate(cfg: DictConfig) -> None:
@@ -90,6 +99,9 @@ def validate(cfg: DictConfig) -> None:
     if cfg.num_envs != "auto" and (isinstance(cfg.num_envs, bool) or not isinstance(cfg.num_envs, int)
                                    or cfg.num_envs < 1):
         raise ConfigError(f"num_envs={cfg.num_envs!r} must be a positive integer or auto (as many as cores)")
+    if cfg.torch_threads != "auto" and (isinstance(cfg.torch_threads, bool)
+                                        or not isinstance(cfg.torch_threads, int) or cfg.torch_threads < 1):
+        raise ConfigError(f"torch_threads={cfg.torch_threads!r} must be a positive integer or auto")
     if cfg.in_process_envs != "auto" and (isinstance(cfg.in_process_envs, bool)
                                           or not isinstance(cfg.in_process_envs, int) or cfg.in_process_envs < 0):
         raise ConfigError(f"in_process_envs={cfg.in_process_envs!r} must be an integer from 0 to num_envs, "
@@ -149,5 +161,5 @@ def compose(overrides: Sequence[str] = ()) -> DictConfig:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = hydra_compose(config_name="config", overrides=list(overrides))
     validate(cfg)
-    resolve_num_envs(cfg)
+    resolve_parallelism(cfg)
     return cfg

@@ -1,4 +1,5 @@
 """`hvc-bench` runs end to end (numbers are not asserted: these machines are noisy)."""
+import os
 import re
 import subprocess
 import sys
@@ -12,6 +13,8 @@ def test_bench_prints_every_measurement_line():
     assert re.search(r"bench task=go_to_target ceiling_sps=\d+ hvc_sps=\d+", out)
     for task in ("go_to_target", "gaps"):
         assert re.search(rf"bench hl task={task} controller=fragments actor_sps=\d+ learner_tps=\d+", out)
+    if len(os.sched_getaffinity(0)) > 1:  # vision: the learner at torch_threads=auto too
+        assert re.search(r"bench hl task=gaps .* learner_tps_\d+_threads=\d+", out)
     assert re.search(r"bench expert_inference hidden=256 us_per_step=[\d.]+ goal_us=30", out)
     for body in ("body=rolling_ball controller=end_to_end", "controller=fragments"):
         assert re.search(rf"bench vector_env {body} num_envs=2 ceiling_sps=\d+ in_process=0:sps=\d+,ratio=[\d.]+ "

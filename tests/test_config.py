@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from hvc.config import CHEAP_BODY_ENVS, ConfigError, compose, group_options, resolve_num_envs
+from hvc.config import CHEAP_BODY_ENVS, ConfigError, compose, group_options, resolve_parallelism
 
 TASKS = group_options("task")
 CONTROLLERS = group_options("controller")
@@ -81,7 +81,7 @@ def test_unknown_group_option_names_the_allowed_ones():
 ])
 def test_in_process_envs_auto_depends_on_the_body(overrides, expected):
     cfg = compose(overrides)
-    resolve_num_envs(cfg)
+    resolve_parallelism(cfg)
     assert cfg.num_envs == 3 and cfg.in_process_envs == expected
 
 
@@ -90,9 +90,19 @@ def test_num_envs_auto_is_one_per_core_for_the_humanoid_and_more_for_the_rolling
 
     humanoid, ball = compose([]), compose(["body=rolling_ball", "controller=end_to_end"])
     for cfg in (humanoid, ball):
-        resolve_num_envs(cfg)
+        resolve_parallelism(cfg)
     assert humanoid.num_envs == len(os.sched_getaffinity(0)) and humanoid.in_process_envs == 1
     assert ball.num_envs == CHEAP_BODY_ENVS == ball.in_process_envs
+
+
+def test_torch_threads_auto_takes_every_core_only_for_vision():
+    import os
+
+    plain, vision, pinned = compose([]), compose(["task=gaps"]), compose(["task=gaps", "torch_threads=1"])
+    for cfg in (plain, vision, pinned):
+        resolve_parallelism(cfg)
+    assert plain.torch_threads == 1 and pinned.torch_threads == 1
+    assert vision.torch_threads == len(os.sched_getaffinity(0))
 
 
 def test_wrong_algorithm_for_controller_fails():
@@ -116,6 +126,7 @@ def _hvc_run(*args, cwd):
     (["algorithm.updates_per_unroll=0"], "algorithm.updates_per_unroll=0"),
     (["num_envs=0"], "num_envs=0 must be a positive integer or auto"),
     (["in_process_envs=-1"], "in_process_envs=-1 must be an integer from 0 to num_envs, or auto"),
+    (["torch_threads=0"], "torch_threads=0 must be a positive integer or auto"),
     (["num_envs=2", "in_process_envs=3"], "in_process_envs=3 exceeds num_envs=2"),
     (["stage=lowlevel", "task=tracking", "task.termination_error=-0.1"], "task.termination_error=-0.1 must be"),
     (["controller=fragments", "task=gaps", "library=null", "clips=gaps", "num_envs=1"], "stage=lowlevel clips=gaps"),

@@ -6,7 +6,7 @@ import torch
 
 from conftest import ENV_TASKS
 from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
-from hvc.config import compose, resolve_num_envs
+from hvc.config import compose, resolve_parallelism
 from hvc.lowlevel.library import Expert, ExpertLibrary
 from hvc.mocap.reference import Reference
 
@@ -54,7 +54,7 @@ def test_controller_trains_on_task(task, controller, libraries, tmp_path):
                    "task.init_from_clips=false", "hl.random_episodes=0", "hl.min_replay_unrolls=1",
                    "algorithm.batch_size=2", "algorithm.updates_per_unroll=1", "log_every=1",
                    *([f"library={library}"] if library else [])])
-    resolve_num_envs(cfg)
+    resolve_parallelism(cfg)
     cfg.total_steps = 2 * int(cfg.task.agent.unroll)
     summary = run_hl_training(cfg, tmp_path)
     assert summary["env_steps"] == cfg.total_steps and summary["learner_steps"] > 0

@@ -191,7 +191,7 @@ def learning_discounts(discounts: np.ndarray, dones: np.ndarray) -> np.ndarray:
 
 
 def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
-    torch.set_num_threads(1)
+    torch.set_num_threads(int(cfg.torch_threads))
     hl, agent_cfg = cfg.hl, cfg.task.agent
     rng = np.random.default_rng(cfg.seed)
     torch.manual_seed(cfg.seed)
