@@ -210,6 +210,40 @@ def _continuous_batch(T=3, B=4, proprio=3, action=2, seed=0):
             "new_action": torch.ones(T, B), "state": torch.zeros(B, 4, 128)}
 
 
+def test_continuous_actions_keep_the_raw_sample_and_its_exact_density():
+    """The env gets the clipped action; replay keeps the raw sample and its Gaussian log
+    density, which the learner's log pi reproduces (a clipped value's density would not
+    be its probability), while Q sees the clipped action as the env did."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from omegaconf import OmegaConf
+
+    from hvc.algorithms.hl_learners import ContinuousLearner
+    from hvc.runtime.hl_train import act
+
+    torch.manual_seed(0)
+    spec = AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
+                     value_mlp=(16, 1), critic_takes_action=True)
+    agent = HighLevelAgent(spec)
+    learner = ContinuousLearner(agent, OmegaConf.create({}), OmegaConf.create({"sigma_clip": [0.9, 1.0]}),
+                                SimpleNamespace(low=-0.2, high=0.2))  # sigma >> range: most samples clip
+    B = 64
+    obs = {"proprio": np.random.default_rng(0).normal(size=(B, 3)).astype(np.float32),
+           "task": np.zeros((B, 0), np.float32)}
+    send, action, log_mu, _, _ = act(agent, learner, obs, np.zeros(B, np.float32), np.zeros((B, 2), np.float32),
+                                     np.ones(B, np.float32), agent.initial_state(B))
+    assert np.all(np.abs(send) <= 0.2) and np.mean(np.abs(action) > 0.2) > 0.5
+    np.testing.assert_array_equal(send, np.clip(action, -0.2, 0.2))
+    with torch.no_grad():
+        out, _, _ = agent(torch.from_numpy(obs["proprio"][None]), torch.from_numpy(obs["task"][None]),
+                          torch.zeros(1, B), torch.zeros(1, B, 2), agent.initial_state(B), done=torch.ones(1, B))
+        dist = learner.distribution(agent, out[0])
+        np.testing.assert_allclose(dist.log_prob(torch.from_numpy(action)).sum(-1).numpy(), log_mu, atol=1e-5)
+        clipped = dist.log_prob(torch.from_numpy(send)).sum(-1).numpy()
+    assert np.abs(clipped - log_mu).max() > 0.1  # the old, clipped density differs: the test can fail
+
+
 def test_continuous_learner_refreshes_its_target_agent_on_schedule():
     from types import SimpleNamespace
 

@@ -95,23 +95,33 @@ class ContinuousLearner:
         return out, h, t_out, t_h
 
     def sample(self, policy_out: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """(the raw Gaussian sample, its log density). The env gets `clip(raw)`; replay keeps
+        the raw sample, whose density is exact: a clipped value has a probability mass at the
+        bound, and a ratio of densities there is not the ratio of probabilities Retrace needs
+        (pi = N(0.9, 0.2) against mu = N(0.9, 0.9) at a clip to 1: 4.0 against 0.68)."""
         dist = self.distribution(self.agent, policy_out)
-        action = torch.clamp(dist.sample(), self.low, self.high)
+        action = dist.sample()
         return action.numpy().astype(np.float32), dist.log_prob(action).sum(-1).numpy()
+
+    def clip(self, action):
+        """What the env and Q see of a raw sample (numpy or torch)."""
+        if isinstance(action, np.ndarray):
+            return np.clip(action, self.low, self.high)
+        return torch.clamp(action, self.low, self.high)
 
     def update(self, optimizer, b: dict, gamma: float) -> dict[str, float]:
         out, h, t_out, t_h = self.replay_unrolls(b)
         with torch.no_grad():
             t_dist = self.distribution(self.target, t_out)
-            q_taken = self.target.values(t_h[:-1], b["action"])
-            v_next = torch.stack([self.target.values(t_h[1:], torch.clamp(t_dist.sample()[1:], self.low, self.high))
+            q_taken = self.target.values(t_h[:-1], self.clip(b["action"]))
+            v_next = torch.stack([self.target.values(t_h[1:], self.clip(t_dist.sample()[1:]))
                                   for _ in range(self.value_samples)]).mean(0)
-            log_pi = self.distribution(self.target, t_out[:-1]).log_prob(b["action"]).sum(-1)
+            log_pi = self.distribution(self.target, t_out[:-1]).log_prob(b["action"]).sum(-1)  # raw: exact
             # held steps chose nothing: their trace is lambda (ratio 1)
             ratio_log = (log_pi - b["log_mu"]) * b["new_action"]
             traces = self.lam * torch.exp(torch.clamp(ratio_log, max=0.0))
             targets = retrace_targets(b["reward"], b["discount"], q_taken, v_next, traces, gamma)
-        q = self.agent.values(h[:-1], b["action"])
+        q = self.agent.values(h[:-1], self.clip(b["action"]))
         critic_loss = 0.5 * ((q - targets) ** 2).mean()
         return self.step(optimizer, critic_loss, out, h, b, q, t_out)
 
@@ -123,7 +133,7 @@ class ContinuousLearner:
         dist = self.distribution(self.agent, out[:-1])
         # Q is only ever trained on actions inside the range (actors clip them): a sample outside
         # it is clipped too, so Q's extrapolation cannot drag the mean past the bounds
-        action = torch.clamp(dist.rsample(), self.low, self.high)
+        action = self.clip(dist.rsample())
         # SVG(0): the gradient of Q w.r.t. the action only; Q's weights and the state features are held
         frozen = {k: v.detach() for k, v in self.agent.value.named_parameters()}
         q_pi = torch.func.functional_call(self.agent.value, frozen,

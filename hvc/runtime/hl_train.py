@@ -152,7 +152,8 @@ def build_agent(cfg: DictConfig, envs: VectorEnv) -> tuple[AgentSpec, HighLevelA
 def act(agent: HighLevelAgent, learner, obs: dict, prev_reward: np.ndarray, prev_action: np.ndarray,
         first: np.ndarray, lstm):
     """One batched high-level step: (what the envs get, the action, log mu, new LSTM state,
-    the query or None). The envs get the selected key's fragment for `query`, else the action."""
+    the query or None). The envs get the selected key's fragment for `query`, the clipped
+    action for the other continuous controllers (the action stays the raw sample), else the action."""
     with torch.no_grad():
         logits, h_step, lstm = agent(
             torch.from_numpy(obs["proprio"][None]).float(), torch.from_numpy(obs["task"][None]).float(),
@@ -166,8 +167,8 @@ def act(agent: HighLevelAgent, learner, obs: dict, prev_reward: np.ndarray, prev
         if isinstance(learner, QueryLearner):
             send, query_action, action, log_mu = learner.act(logits[0], h_step[0])
             return send, action, log_mu, lstm, query_action
-        action, log_mu = learner.sample(logits[0])
-        return action, action, log_mu, lstm, None
+        action, log_mu = learner.sample(logits[0])  # raw: replay and the agent's next input keep it
+        return learner.clip(action), action, log_mu, lstm, None
 
 
 def carry(action: np.ndarray, prev_action: np.ndarray, rewards: np.ndarray, dones: np.ndarray, infos):
