@@ -242,6 +242,14 @@ def test_continuous_actions_keep_the_raw_sample_and_its_exact_density():
         np.testing.assert_allclose(dist.log_prob(torch.from_numpy(action)).sum(-1).numpy(), log_mu, atol=1e-5)
         clipped = dist.log_prob(torch.from_numpy(send)).sum(-1).numpy()
     assert np.abs(clipped - log_mu).max() > 0.1  # the old, clipped density differs: the test can fail
+    from hvc.runtime.hl_train import carry, sees_clipped_actions
+
+    assert sees_clipped_actions(learner)
+    infos = [{"new_action": True}] * B
+    _, in_force, _, next_input, _ = carry(action, np.zeros_like(action), np.zeros(B), np.zeros(B, bool), infos,
+                                          seen=send)
+    np.testing.assert_array_equal(in_force, action)  # replay: the raw sample
+    np.testing.assert_array_equal(next_input, send)  # the agent's next input: what the env got
 
 
 def test_continuous_learner_refreshes_its_target_agent_on_schedule():

@@ -171,14 +171,23 @@ def act(agent: HighLevelAgent, learner, obs: dict, prev_reward: np.ndarray, prev
         return learner.clip(action), action, log_mu, lstm, None
 
 
-def carry(action: np.ndarray, prev_action: np.ndarray, rewards: np.ndarray, dones: np.ndarray, infos):
+def sees_clipped_actions(learner) -> bool:
+    """Whether the agent's next input is the clipped action the env got while replay keeps the
+    raw sample (SVG(0) controllers; the query's input is its selected key)."""
+    return isinstance(learner, ContinuousLearner) and not isinstance(learner, QueryLearner)
+
+
+def carry(action: np.ndarray, prev_action: np.ndarray, rewards: np.ndarray, dones: np.ndarray, infos,
+          seen: np.ndarray | None = None):
     """After a step: (new-action flags, the action in force: the new one only where the
     controller took it, then the previous reward, previous action and episode-start flags
-    the agent sees next, zeroed where an episode ended)."""
+    the agent sees next, zeroed where an episode ended). `seen` is what the agent sees of a
+    new action if not the action itself (a raw continuous sample's clipped value, what the env got)."""
     new = np.array([float(i.get("new_action", False)) for i in infos], np.float32)
     held = new.reshape(-1, *([1] * (action.ndim - 1))) > 0
     in_force = np.where(held, action, prev_action)
-    next_action, next_reward = in_force.copy(), rewards.astype(np.float32)
+    next_action = np.where(held, action if seen is None else seen, prev_action)
+    next_reward = rewards.astype(np.float32)
     next_action[dones], next_reward[dones] = 0, 0.0
     return new, in_force, next_reward, next_action, dones.astype(np.float32)
 
@@ -204,6 +213,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     vision = spec.vision
     discrete = spec.discrete
     query = isinstance(learner, QueryLearner)
+    clipped_actions = sees_clipped_actions(learner)
     optimizer = torch.optim.Adam(agent.parameters(),
                                  lr=float(cfg.algorithm.learning_rate))
     n, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
@@ -281,7 +291,8 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 before = {k: v[0] for k, v in obs.items()}
                 obs, rewards, discounts, dones, infos = envs.step(send)
                 recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
-                new, in_force, prev_reward, next_action, first = carry(action, prev_action, rewards, dones, infos)
+                new, in_force, prev_reward, next_action, first = carry(action, prev_action, rewards, dones, infos,
+                                                                       seen=send if clipped_actions else None)
                 if query:
                     prev_query = np.where(new[:, None] > 0, query_action, prev_query)
                     seq["query"].append(prev_query.copy())

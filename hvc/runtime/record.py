@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from hvc.errors import HvcUserError
 from hvc.runtime.episodes import EpisodeRecorder
-from hvc.runtime.hl_train import act, build_agent, carry, load_checkpoint, make_envs
+from hvc.runtime.hl_train import act, build_agent, carry, load_checkpoint, make_envs, sees_clipped_actions
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +62,7 @@ def run_record(cfg: DictConfig, run_dir: Path) -> dict:
         lstm = agent.initial_state(1)
         prev_reward, first = np.zeros(1, np.float32), np.ones(1, np.float32)
         prev_action = np.zeros(1, np.int64) if spec.discrete else np.zeros((1, spec.action_size), np.float32)
+        clipped = sees_clipped_actions(learner)
         returns: list[float] = []
         with tqdm(total=recorder.max_episodes, desc="record", unit="episode", disable=None) as bar:
             while recorder.active:
@@ -69,7 +70,8 @@ def run_record(cfg: DictConfig, run_dir: Path) -> dict:
                 before = {k: v[0] for k, v in obs.items()}
                 obs, rewards, _, dones, infos = envs.step(send)
                 recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
-                _, _, prev_reward, prev_action, first = carry(action, prev_action, rewards, dones, infos)
+                _, _, prev_reward, prev_action, first = carry(action, prev_action, rewards, dones, infos,
+                                                              seen=send if clipped else None)
                 if "episode_return" in infos[0]:
                     returns.append(float(infos[0]["episode_return"]))
                     bar.update(1)
