@@ -187,7 +187,8 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         print(f"expert clip={e.entry['id']} behaviour={e.entry['behaviour']} "
               f"completion={e.scores['eval_completion']:.2f} reward={e.scores['eval_reward']:.2f}")
     print(f"library={path}")
-    return {"library": str(path), "experts": {e.entry["id"]: e.scores for e in library.experts}}
+    return {"library": str(path), "experts": {f"{e.entry['behaviour']} ({e.entry['id']})": e.scores
+                                             for e in library.experts}}  # one clip can give two entries
 
 
 def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path, reused: dict | None = None):
