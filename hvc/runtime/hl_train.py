@@ -201,7 +201,10 @@ def learning_discounts(discounts: np.ndarray, dones: np.ndarray) -> np.ndarray:
 
 
 def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
-    torch.set_num_threads(int(cfg.torch_threads))
+    # acting (a few frames per call) runs on one thread; only the learner's batched updates take
+    # `torch_threads`: the worker envs wait for them, while threads of small calls only contend
+    torch.set_num_threads(1)
+    learner_threads = int(cfg.torch_threads)
     hl, agent_cfg = cfg.hl, cfg.task.agent
     rng = np.random.default_rng(cfg.seed)
     torch.manual_seed(cfg.seed)
@@ -321,6 +324,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                 replay.add(state=start_state[e], **fields)
             if replay.size >= int(hl.min_replay_unrolls):
                 update_credit += updates_per_unroll * E  # per unroll added; fractions accumulate
+                torch.set_num_threads(learner_threads)
                 while update_credit >= 1.0:
                     update_credit -= 1.0
                     sample = replay.sample(batch, rng)
@@ -331,6 +335,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                         raise NonFiniteLoss(f"{error} at env step {counters['env_steps']}; the last good state "
                                             f"is saved in {checkpoint}") from None
                     counters["updates"] += 1
+                torch.set_num_threads(1)
             if counters["env_steps"] - last_log >= int(cfg.log_every):
                 last_log = counters["env_steps"]
                 row = {"episodes": counters["episodes"],
