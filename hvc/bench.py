@@ -137,17 +137,18 @@ def expert_inference_us(hidden: int, seconds: float) -> float:
     return 1e6 * (time.perf_counter() - t0) / n
 
 
-def _bench_library():
-    """The shipped default library, or random experts of the same shapes (throughput only)."""
+def _bench_library(clip_set: str = "go_to_target"):
+    """The clip set's shipped library (gaps: 359 fragments), else the default one, else random
+    experts of the default set's shapes (throughput only)."""
     import torch
 
     from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
     from hvc.lowlevel.library import Expert, ExpertLibrary, SHIPPED_DIR
     from hvc.mocap.reference import Reference
 
-    shipped = SHIPPED_DIR / "experts_go_to_target.npz"
-    if shipped.exists():
-        return ExpertLibrary.load(shipped)
+    for name in (clip_set, "go_to_target"):
+        if (SHIPPED_DIR / f"experts_{name}.npz").exists():
+            return ExpertLibrary.load(SHIPPED_DIR / f"experts_{name}.npz")
     experts = []
     for i, n in enumerate((102, 108, 43, 58)):  # the default set's lengths: 105 fragments at length 3
         torch.manual_seed(i)
@@ -173,7 +174,7 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, floa
     torch.set_num_threads(1)
     cfg = compose([f"task={task_name}", "task.layout_pool=1", "task.init_from_clips=false"])
     env = FastEnv.build(_plain(cfg, "task"), _plain(cfg, "body"), _plain(cfg, "render"), seed=0)
-    controlled = ControlledEnv(env, FragmentsController(_bench_library(), 3))
+    controlled = ControlledEnv(env, FragmentsController(_bench_library(str(cfg.clips.name)), 3))
     rng = np.random.default_rng(0)
     controlled.reset()
     n, t0 = 0, time.perf_counter()
