@@ -129,3 +129,29 @@ def test_each_steered_cycle_starts_from_the_body_heading():
         gap = abs((body_heading - ref_heading + np.pi) % (2 * np.pi) - np.pi)
         assert (gap < 1e-6) if reanchor else (gap > 0.5), (reanchor, gap)
         env.close()
+
+
+def test_lean_tilts_the_root_into_the_turn_by_the_centripetal_angle(cycle):
+    from hvc.mocap.steering import lean_angle
+    from hvc.rotations import quat_conj, quat_mul, quat_to_mat
+
+    rates = [1.0, -1.0]
+    upright, _ = steer_cycle(cycle, rates)
+    leaned, _ = steer_cycle(cycle, rates, lean=True, lean_ramp=6)
+    speed = float(np.linalg.norm(np.mean(cycle.velocity[:, :2], axis=0)))
+    L = cycle.num_steps
+    # rolling about the direction of travel barely moves the heading
+    np.testing.assert_allclose(root_heading(leaned.quaternion), root_heading(upright.quaternion), atol=0.05)
+
+    def roll(t):  # how far the world rotation from the upright to the leaned root tips the vertical to the left
+        up = quat_to_mat(quat_mul(leaned.quaternion[t], quat_conj(upright.quaternion[t])))[:, 2]
+        travel = upright.velocity[t, :2] / np.linalg.norm(upright.velocity[t, :2])
+        left = np.array([-travel[1], travel[0], 0.0])
+        return float(np.arcsin(up @ left))
+
+    for k, rate in enumerate(rates):
+        t = k * L + L // 2  # past the ramp
+        assert np.sign(roll(t)) == np.sign(rate)  # a left turn (rate > 0) leans left, towards the centre
+        assert roll(t) == pytest.approx(lean_angle(speed, rate), abs=0.05)
+        assert leaned.position[t, 2] < upright.position[t, 2]
+    assert roll(L) > 0 > roll(L + 6)  # the second cycle ramps from the first's lean

@@ -29,13 +29,14 @@ class SteerableTrackingLogic(TrackingLogic):
         self.cycle = ref.segment(0, cycle_steps(ref.phase))
         self.turn_rates = tuple(float(r) for r in cfg.get("turn_rates", (-1.5, 1.5)))
         self.cycles = int(cfg.get("cycle_repeats", 4))
+        self.lean = bool(cfg.get("steer_lean", False))
         self.rates = np.zeros(self.cycle.num_steps * self.cycles)
         self.held_rate: float | None = None  # evaluation: one commanded rate for every cycle
 
     def reset(self, model, data, rng):
         rates = (rng.uniform(*self.turn_rates, self.cycles) if self.held_rate is None
                  else np.full(self.cycles, self.held_rate))
-        self.reference, self.rates = steer_cycle(self.cycle, rates)
+        self.reference, self.rates = steer_cycle(self.cycle, rates, lean=self.lean)
         if self.reanchor:  # each cycle turns from where the body faces (TrackingLogic.anchor)
             self.anchors = frozenset(range(self.cycle.num_steps, self.reference.num_steps, self.cycle.num_steps))
         super().reset(model, data, rng)
