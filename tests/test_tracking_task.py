@@ -64,6 +64,27 @@ def test_open_loop_tracks_early_then_falls(run_env):
     assert 0 < np.mean(completions) < 1
 
 
+def test_episode_energies_are_the_weighted_terms_behind_the_reward(run_env):
+    from hvc.lowlevel.evaluation import open_loop_action, run_episode
+
+    logic = run_env.layout.logic
+    seen = []
+
+    def act(obs, logic):  # sees the terms of the step before (the first call: the last episode's)
+        seen.append(dict(logic.last_terms))
+        return open_loop_action(obs, logic)
+
+    stats = run_episode(run_env, act)
+    per_step = seen[1:] + [dict(logic.last_terms)]
+    assert len(per_step) == stats.steps
+    weights = logic.reward_fn.weights
+    for term in weights:
+        assert stats.energy[term] == pytest.approx(np.mean([weights[term] * s[term] for s in per_step]))
+    # r = exp(-beta E / w_total) is convex in E: the mean reward bounds the reward of the mean energy
+    total = sum(stats.energy.values())
+    assert 0 < np.exp(-logic.reward_fn.beta * total / logic.reward_fn.w_total) <= stats.mean_reward + 1e-9
+
+
 def test_time_input_and_random_starts(run_env):
     logic = run_env.layout.logic
     starts = set()

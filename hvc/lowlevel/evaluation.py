@@ -1,7 +1,8 @@
 """Tracking evaluation: completion and reward per episode, for an expert or open loop.
 
 Completion is the fraction of the clip remaining at the (random) start that was tracked
-before termination; reward is the mean per-step tracking reward. The open-loop
+before termination; reward is the mean per-step tracking reward; `energy_<term>` is each
+term's weighted energy (w_term * E_term) per step, which shows what holds the reward down. The open-loop
 baseline plays the reference's next pose as the action: position control makes the
 pose itself an action, so it needs no learning and shows the bar experts must beat.
 """
@@ -21,6 +22,7 @@ class EpisodeStats:
     mean_reward: float
     steps: int
     fell: bool
+    energy: dict[str, float]  # mean weighted energy per reward term (empty if the task has none)
 
 
 def policy_observation(obs: dict) -> np.ndarray:
@@ -36,13 +38,17 @@ def open_loop_action(obs: dict, logic) -> np.ndarray:
 def run_episode(env: FastEnv, act: Callable[[dict, object], np.ndarray]) -> EpisodeStats:
     obs = env.reset()
     logic = env.layout.logic
-    rewards = []
+    weights = logic.reward_fn.weights
+    rewards, energy = [], {term: 0.0 for term in weights}
     while True:
         obs, reward, _, done = env.step(act(obs, logic))
         rewards.append(reward)
+        for term, value in logic.last_terms.items():
+            energy[term] += weights[term] * value
         if done:
             break
-    return EpisodeStats(logic.completion, float(np.mean(rewards)), len(rewards), bool(logic.failure))
+    return EpisodeStats(logic.completion, float(np.mean(rewards)), len(rewards), bool(logic.failure),
+                        {term: total / len(rewards) for term, total in energy.items()})
 
 
 def evaluate(env: FastEnv, act: Callable[[dict, object], np.ndarray], episodes: int,
@@ -51,7 +57,8 @@ def evaluate(env: FastEnv, act: Callable[[dict, object], np.ndarray], episodes: 
     return {f"{prefix}completion": float(np.mean([s.completion for s in stats])),
             f"{prefix}reward": float(np.mean([s.mean_reward for s in stats])),
             f"{prefix}fall_rate": float(np.mean([s.fell for s in stats])),
-            f"{prefix}steps": float(np.mean([s.steps for s in stats]))}
+            f"{prefix}steps": float(np.mean([s.steps for s in stats])),
+            **{f"{prefix}energy_{term}": float(np.mean([s.energy[term] for s in stats])) for term in stats[0].energy}}
 
 
 def evaluate_open_loop(env: FastEnv, episodes: int) -> dict[str, float]:

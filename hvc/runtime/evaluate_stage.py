@@ -91,6 +91,8 @@ def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
             print(f"eval clip={clip} completion={scores['completion']:.2f} reward={scores['reward']:.2f} "
                   f"openloop_completion={scores['openloop_completion']:.2f} "
                   f"openloop_reward={scores['openloop_reward']:.2f}")
+            print(f"energy clip={clip} " + " ".join(f"{k.removeprefix('energy_')}={v:.2f}" for k, v in scores.items()
+                                                   if k.startswith("energy_")))
             if cfg.video:
                 record_expert_video(env, expert, run_dir / f"expert_{expert.entry['behaviour']}_{clip}.mp4")
             env.close()
