@@ -130,6 +130,21 @@ def test_warm_start_acts_as_the_expert_whatever_the_new_inputs():
         load_warm_start(GaussianPolicy(5, 3, [16, 16], 0.1), expert_np, np.zeros(5), np.ones(5))
 
 
+def test_policy_reads_only_its_inputs_of_a_wider_critic_state():
+    torch.manual_seed(0)
+    policy = GaussianPolicy(6, 3, [16], 0.1)
+    state = torch.randn(5, 9)
+    changed = state.clone()
+    changed[:, 6:] += 3.0  # the critic's extra columns
+    assert torch.equal(policy.mean(state), policy.mean(state[:, :6]))
+    assert torch.equal(policy.mean(state), policy.mean(changed))
+    # a learner whose critic sees the wider state updates both networks
+    learner = SVG0Retrace(policy, QNetwork(9, 3, [16]), CFG)
+    before = [p.clone() for p in policy.parameters()]
+    learner.update(_batch(obs=9))
+    assert any(not torch.equal(a, b) for a, b in zip(before, policy.parameters()))
+
+
 def test_pretraining_reduces_the_action_error():
     rng = np.random.default_rng(0)
     obs = rng.normal(size=(200, 6)).astype(np.float32)
@@ -192,7 +207,8 @@ def test_library_from_another_version_fails_clearly(tmp_path):
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
-def test_expert_training_resumes_from_its_checkpoint(tmp_path):
+@pytest.mark.parametrize("privileged", [False, True])
+def test_expert_training_resumes_from_its_checkpoint(tmp_path, privileged):
     import pandas as pd
     from omegaconf import OmegaConf
 
@@ -202,12 +218,16 @@ def test_expert_training_resumes_from_its_checkpoint(tmp_path):
 
     cfg = compose(["stage=lowlevel", "task=tracking", "clip=left_turn", "lowlevel.bc_steps=20",
                    "lowlevel.bc_rollouts=2", "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=1", "lowlevel.log_every=100",
-                   "lowlevel.batch_size=4"])
+                   "lowlevel.batch_size=4", f"lowlevel.critic_sees_reference={str(privileged).lower()}"])
     task, body, render = env_dicts(cfg)
     ll = OmegaConf.to_container(cfg.lowlevel)
     train_expert(task, body, render, ll, tmp_path, total_steps=200)
     first = torch.load(tmp_path / "checkpoint.pt", weights_only=True)  # no pickle needed
     assert 200 <= first["counters"]["env_steps"] < 210 and first["learner"]["steps"] > 0
+    policy_inputs = first["learner"]["policy"]["normalizer.mean"].shape[0]
+    critic_inputs = first["learner"]["critic"]["normalizer.mean"].shape[0]
+    assert critic_inputs == policy_inputs + (7 if privileged else 0)  # the extras reach the critic only
+    assert first["replay"]["obs"].shape[-1] == critic_inputs
     result = train_expert(task, body, render, ll, tmp_path, total_steps=400)
     second = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert 400 <= second["counters"]["env_steps"] < 410

@@ -85,6 +85,27 @@ def test_episode_energies_are_the_weighted_terms_behind_the_reward(run_env):
     assert 0 < np.exp(-logic.reward_fn.beta * total / logic.reward_fn.w_total) <= stats.mean_reward + 1e-9
 
 
+def test_critic_features_are_the_rotation_and_velocity_to_the_reference(run_env):
+    from hvc.rotations import quat_mul, quat_to_mat, yaw_quat
+
+    logic = run_env.layout.logic
+    t = 30
+    logic.t = t
+    logic.set_reference_state(run_env.data, t)
+    mujoco.mj_forward(run_env.model, run_env.data)
+    features = logic.critic_features(run_env.data)
+    assert features.shape == (logic.critic_feature_size,)
+    np.testing.assert_allclose(features[:4], [1, 0, 0, 0], atol=1e-6)  # on the reference: no rotation
+    body = run_env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7].copy()
+    np.testing.assert_allclose(features[4:], quat_to_mat(body).T @ logic.reference.velocity[t], atol=1e-5)
+    # the body turned 0.4 rad to the left of the reference: the reference is 0.4 rad to its right
+    run_env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7] = quat_mul(yaw_quat(0.4), body)
+    features = logic.critic_features(run_env.data)
+    assert 2 * np.arccos(features[0]) == pytest.approx(0.4, abs=1e-5)
+    world_axis = quat_to_mat(run_env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7]) @ features[1:4]
+    assert world_axis[2] / np.linalg.norm(world_axis) == pytest.approx(-1.0, abs=1e-5)
+
+
 def test_time_input_and_random_starts(run_env):
     logic = run_env.layout.logic
     starts = set()

@@ -39,14 +39,18 @@ class Normalizer(nn.Module):
 
 
 class GaussianPolicy(nn.Module):
+    """tanh(MLP) mean, fixed sigma. It reads the first `obs_size` columns of what it is given,
+    so a learner may store wider states whose extra columns only its critic sees."""
+
     def __init__(self, obs_size: int, action_size: int, hidden: Sequence[int], sigma: float):
         super().__init__()
+        self.obs_size = int(obs_size)
         self.normalizer = Normalizer(obs_size)
         self.net = mlp([obs_size, *hidden, action_size])
         self.sigma = float(sigma)
 
     def mean(self, obs: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(self.net(self.normalizer(obs)))
+        return torch.tanh(self.net(self.normalizer(obs[..., :self.obs_size])))
 
     def log_prob(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         return gaussian_log_prob(action, self.mean(obs), self.sigma)

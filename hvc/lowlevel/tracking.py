@@ -19,7 +19,7 @@ from hvc.lowlevel.reward import TrackingFeatures, TrackingReward
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference, find_cycle, from_clip, loop_cycle
 from hvc.mocap.steering import turn_from
-from hvc.rotations import quat_to_mat, rot_z
+from hvc.rotations import quat_conj, quat_mul, quat_to_mat, rot_z
 
 # Bodies allowed to touch the ground: feet and hands (the paper's termination rule).
 ALLOWED_CONTACT_BODIES = ("lfoot", "ltoes", "rfoot", "rtoes", "lhand", "lfingers", "lthumb",
@@ -180,6 +180,20 @@ class TrackingLogic(TaskLogic):
 
     def observation(self, model, data):
         return np.array([self.reference.phase[self.t]], np.float32)
+
+    critic_feature_size = 7
+
+    def critic_features(self, data) -> np.ndarray:
+        """What the reward scores but the egocentric policy cannot see, for the critic only:
+        the rotation from the body's root to the reference's (q_body^-1 q_ref, w >= 0; the
+        orientation term's state, heading included) and the reference's root velocity in the
+        body's root frame. Without them Q must guess from proprioception how far the heading
+        has drifted, which is most of what a steered cycle is scored on."""
+        body = data.qpos[self.root_qpos + 3:self.root_qpos + 7]
+        relative = quat_mul(quat_conj(body), self.reference.quaternion[self.t])
+        relative = relative if relative[0] >= 0 else -relative
+        velocity = quat_to_mat(body).T @ self.reference.velocity[self.t]
+        return np.concatenate([relative, velocity]).astype(np.float32)
 
     @property
     def completion(self) -> float:

@@ -163,11 +163,19 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     env = FastEnv.build(task, body, render, seed=seed, render=False)
     logic = env.layout.logic
     obs_size = env.layout.proprio.size + logic.observation_size
+    privileged = bool(cfg.get("critic_sees_reference", False))
+    state_size = obs_size + (logic.critic_feature_size if privileged else 0)
+
+    def stored(obs: dict) -> np.ndarray:
+        """What replay keeps: the policy's observation, then (privileged) the critic's extras."""
+        x = policy_observation(obs)
+        return np.concatenate([x, logic.critic_features(env.data)]) if privileged else x
+
     sigma = float(cfg["sigma"])
-    policy = GaussianPolicy(obs_size, env.action_size, cfg["hidden"], sigma)
-    critic = QNetwork(obs_size, env.action_size, cfg["critic_hidden"])
+    policy = GaussianPolicy(obs_size, env.action_size, cfg["hidden"], sigma)  # reads the first obs_size columns
+    critic = QNetwork(state_size, env.action_size, cfg["critic_hidden"])
     learner = SVG0Retrace(policy, critic, cfg)
-    replay = UnrollReplay(int(cfg["replay_unrolls"]), int(cfg["unroll"]), obs_size, env.action_size)
+    replay = UnrollReplay(int(cfg["replay_unrolls"]), int(cfg["unroll"]), state_size, env.action_size)
     checkpoint = out_dir / "checkpoint.pt"
     counters = {"env_steps": 0, "episodes": 0, "critic_only_until": 0}
     metrics = MetricsLogger(out_dir / "metrics.csv", tensorboard=True)
@@ -189,7 +197,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
             before, after = pretrain(policy, obs, actions, int(cfg["distill_steps"]), float(cfg["bc_lr"]),
                                      int(cfg["bc_batch"]), rng)
             metrics.log(0, {"distill_mse_before": before, "distill_mse_after": after})
-        critic.normalizer.load_state_dict(policy.normalizer.state_dict())
+        _critic_normalizer(critic, policy)
         learner.sync_targets()
         counters["critic_only_until"] = int(cfg.get("warm_start_critic_steps", 0))
         metrics.log(0, evaluate(env, _greedy(NumpyPolicy.from_torch(policy)), int(cfg["eval_episodes"]), "eval_"))
@@ -199,7 +207,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         ref_obs, ref_actions = np.concatenate([ref_obs, near_obs]), np.concatenate([ref_actions, near_actions])
         mean, std = ref_obs.mean(0), ref_obs.std(0)
         policy.normalizer.set(mean, std)
-        critic.normalizer.set(mean, std)
+        _critic_normalizer(critic, policy)
         before, after = pretrain(policy, ref_obs, ref_actions, int(cfg["bc_steps"]), float(cfg["bc_lr"]),
                                  int(cfg["bc_batch"]), rng)
         learner.sync_targets()
@@ -218,14 +226,14 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     returns, completions, step_rewards, losses = [], [], [], []
     obs = env.reset()
     while counters["env_steps"] < total_steps:
-        seq_obs, seq_act, seq_rew, seq_disc, seq_logmu = [policy_observation(obs)], [], [], [], []
+        seq_obs, seq_act, seq_rew, seq_disc, seq_logmu = [stored(obs)], [], [], [], []
         done = False
         for _ in range(unroll):
-            mean = actor(seq_obs[-1])
+            mean = actor(seq_obs[-1][:obs_size])
             noise = rng.standard_normal(mean.shape).astype(np.float32)
             action = mean + sigma * noise
             obs, reward, discount, done = env.step(action)
-            seq_obs.append(policy_observation(obs))
+            seq_obs.append(stored(obs))
             seq_act.append(action)
             seq_rew.append(reward)
             seq_disc.append(discount)
@@ -278,6 +286,14 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     metrics.close()
     env.close()
     return final
+
+
+def _critic_normalizer(critic: QNetwork, policy: GaussianPolicy) -> None:
+    """The critic normalises the policy's inputs as the policy does; its extras (already of
+    order 1: a unit quaternion, a velocity in m/s) pass unchanged."""
+    extra = critic.normalizer.mean.shape[0] - policy.normalizer.mean.shape[0]
+    critic.normalizer.set(np.concatenate([policy.normalizer.mean.numpy(), np.zeros(extra, np.float32)]),
+                          np.concatenate([policy.normalizer.std.numpy(), np.ones(extra, np.float32)]))
 
 
 def _greedy(actor: NumpyPolicy):
