@@ -222,6 +222,8 @@ def test_structured_policy_trains_ships_and_evaluates(tmp_path, clips, line):
     library = tmp_path / "ll" / f"experts_{clips}.npz"
     out = _run("stage=evaluate", f"clips={clips}", f"library={library}", "episodes=7", cwd=tmp_path).stdout
     assert line in out
+    # the run dir itself evaluates the same way (its checkpoints, as a run in progress would)
+    assert line in _run("stage=evaluate", f"clips={clips}", "library=ll", "episodes=7", cwd=tmp_path).stdout
     if clips == "steerable":  # every commanded rate of the range, each with an achieved rate
         rates = re.findall(r"commanded_rate=([-+.\d]+) achieved_rate=([-+.\dna]+)", out)
         assert [float(c) for c, _ in rates] == [-1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5]
@@ -297,6 +299,17 @@ def test_lowlevel_reuses_experts_of_another_library(tmp_path):
     assert library.meta["provenance"]["env_steps"][:3] == shipped.meta["provenance"]["env_steps"][:3]
     [command] = library.meta["provenance"]["run_commands"]  # every invocation on the run dir, with its version
     assert command.endswith("hydra.run.dir=ll") and "lowlevel.reuse=" in command and "[hvc " in command
+    # read from the run dir's checkpoints (as `stage=evaluate library=<run dir>` does): the same experts
+    from hvc.errors import HvcUserError
+    from hvc.runtime.lowlevel_stage import library_from_run
+
+    from_run = library_from_run(tmp_path / "ll")
+    assert from_run.clip_ids == library.clip_ids
+    for a, b in zip(from_run.experts, library.experts):
+        np.testing.assert_array_equal(a.act(x), b.act(x))
+    (tmp_path / "ll" / "experts" / "3_right_turn_CMU_016_43" / "checkpoint.pt").unlink()
+    with pytest.raises(HvcUserError, match="no checkpoint yet in .*3_right_turn_CMU_016_43"):
+        library_from_run(tmp_path / "ll")
 
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),

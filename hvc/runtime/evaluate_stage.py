@@ -4,7 +4,8 @@ Per clip: `episodes` episodes from random start points with the expert's mean ac
 completion (fraction of the remaining clip tracked before termination) and mean
 per-step tracking reward, next to the open-loop baseline on the same clip. One line per
 clip on stdout, a table in `metrics.csv`, and with `video=true` a video of each expert
-beside its reference (kinematic replay) from the same start.
+beside its reference (kinematic replay) from the same start. `library=` takes an `.npz` or a
+`stage=lowlevel` run dir, whose checkpoints are read as they stand (training may go on).
 """
 from __future__ import annotations
 
@@ -75,7 +76,12 @@ def structured_scores(cfg: DictConfig, env, expert, act, metrics: MetricsLogger)
 
 def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
     path = Path(cfg.library) if cfg.get("library") else shipped_library(str(cfg.clips.name))
-    library = ExpertLibrary.load(path)
+    if path.is_dir():  # a stage=lowlevel run dir, finished or still training
+        from hvc.runtime.lowlevel_stage import library_from_run
+
+        library = library_from_run(path, cfg.get("mocap_file"))
+    else:
+        library = ExpertLibrary.load(path)
     print(f"library={path} experts={len(library)} episodes={cfg.episodes}")
     results = {}
     with MetricsLogger(run_dir / "metrics.csv") as metrics:

@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from hvc.config import ConfigError, group_config
+from hvc.errors import HvcUserError
 from hvc.mocap.clip_sets import entries_of, resolve
 from hvc.mocap.source import find_mocap_file
 from hvc.provenance import run_commands
@@ -116,10 +117,8 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     warm = warm_start_policies(cfg, entries)
     jobs = []
     if cfg.clips.get("switching"):  # one policy over the whole set (the switching controller's)
-        from hvc.mocap.clip_sets import ClipEntry
-
         spec = OmegaConf.to_container(cfg.clips.switching, resolve=True)
-        combined = ClipEntry(id="switching", behaviour="switching", steps=int(spec["steps"]))
+        combined = switching_entry(cfg)
         out = expert_dir(run_dir, 0, combined)
         out.mkdir(parents=True, exist_ok=True)
         task, body, render = env_dicts(cfg, entries[0], tracking=True)
@@ -191,9 +190,38 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
                                              for e in library.experts}}  # one clip can give two entries
 
 
+def switching_entry(cfg: DictConfig):
+    """The one entry that stands for a switching run's policy over the whole clip set."""
+    from hvc.mocap.clip_sets import ClipEntry
+
+    return ClipEntry(id="switching", behaviour="switching", steps=int(cfg.clips.switching.steps))
+
+
+def library_from_run(run_dir: Path, mocap_file: str | None = None):
+    """The library of a `stage=lowlevel` run dir as its checkpoints stand now, finished or
+    not (checkpoints are replaced atomically, so a running run can be read): what
+    `stage=evaluate library=<run dir>` scores while training goes on."""
+    run_dir = Path(run_dir)
+    config = run_dir / "config_resolved.yaml"
+    if not config.is_file():
+        raise HvcUserError(f"library={run_dir} is a directory but not a stage=lowlevel run dir "
+                           "(no config_resolved.yaml)")
+    cfg = OmegaConf.load(config)
+    mocap = find_mocap_file(mocap_file or cfg.mocap_file, str(cfg.body.get("model_version", "2019")))
+    entries = [switching_entry(cfg)] if cfg.clips.get("switching") else resolve(entries_of(cfg.clips), str(mocap))
+    reused = reusable_experts(cfg, entries)
+    missing = [str(expert_dir(run_dir, i, e)) for i, e in enumerate(entries)
+               if i not in reused and not (expert_dir(run_dir, i, e) / "checkpoint.pt").exists()]
+    if missing:
+        raise HvcUserError(f"library={run_dir}: no checkpoint yet in {missing} (one is written every "
+                          f"lowlevel.checkpoint_seconds={cfg.lowlevel.checkpoint_seconds})")
+    return assemble_library(cfg, run_dir, entries, mocap, reused)
+
+
 def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path, reused: dict | None = None):
     """The expert library from the clips' checkpoints and evaluation results (and the
-    experts reused from another library, as they are)."""
+    experts reused from another library, as they are); a clip still training has no
+    evaluation result yet, and its expert no scores."""
     import torch
 
     from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
@@ -227,7 +255,8 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path, 
         else:
             reference = build_reference(entry.as_dict(), str(mocap_file), int(tracking.cycle_repeats),
                                         int(tracking.cycle_blend))
-        scores = json.loads((out / "result.json").read_text())
+        result = out / "result.json"
+        scores = json.loads(result.read_text()) if result.exists() else {}
         steps.append(int(state["counters"]["env_steps"]))
         experts.append(Expert(entry.as_dict(), NumpyPolicy.from_torch(policy), reference, scores))
     meta = {"clip_set": str(cfg.clips.name), "body": str(cfg.body.name), "sigma": float(cfg.lowlevel.sigma),
