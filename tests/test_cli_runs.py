@@ -331,6 +331,13 @@ def test_steerable_policy_warm_starts_from_the_run_expert(tmp_path):
     np.testing.assert_allclose(steerable.act(x), run.act(x[:, :-1]), atol=1e-5)
     metrics = pd.read_csv(next((tmp_path / "ll" / "experts").glob("*/metrics.csv")))
     assert "bc_mse_after" not in set(metrics.key) and "critic_loss" in set(metrics.key)
+    # the sensitivity analysis varies the rate input: still ignored, so no action changes with it
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
+    from steering_sensitivity import sensitivity
+
+    result = sensitivity(tmp_path / "ll", states=50)
+    assert result["rate"] == 1.5 and result["action_change"].shape == (56,)
+    assert result["mean_abs_action_change"] < 1e-6 and result["mean_abs_grad"] > 0
 
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
