@@ -275,6 +275,35 @@ def test_a_killed_training_run_saves_its_checkpoint_and_says_how_to_resume(tmp_p
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
+def test_a_killed_lowlevel_run_saves_every_clip_it_was_training(tmp_path):
+    """No periodic checkpoint is due, so only the stop itself can have written one."""
+    import json
+    import signal
+    import time
+
+    import torch
+
+    tiny = ["lowlevel.bc_steps=10", "lowlevel.bc_rollouts=1", "lowlevel.min_replay_unrolls=2", "lowlevel.batch_size=2",
+            "lowlevel.eval_episodes=1", "lowlevel.hidden=[16]", "lowlevel.critic_hidden=[16]", "lowlevel.log_every=50",
+            "lowlevel.checkpoint_seconds=100000", "lowlevel.workers=2", "clips=go_to_target"]
+    proc = subprocess.Popen([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "total_steps=10000000", *tiny,
+                             "hydra.run.dir=ll"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    experts = tmp_path / "ll" / "experts"
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and len(list(experts.glob("*/progress.json"))) < 2:
+        time.sleep(1)
+    progress = {p.parent.name: json.loads(p.read_text())["env_steps"] for p in experts.glob("*/progress.json")}
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130 and "resume=" in err, err[-2000:]
+    assert len(progress) == 2  # two clips were training (workers=2)
+    for name, steps in progress.items():
+        state = torch.load(experts / name / "checkpoint.pt", weights_only=True)
+        assert state["counters"]["env_steps"] >= steps > 0
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
 def test_lowlevel_reuses_experts_of_another_library(tmp_path):
     """Only the clips the reused library lacks are trained; the others are kept as they are."""
     import numpy as np

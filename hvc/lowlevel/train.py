@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import json
 import os
+import signal
+import threading
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -139,6 +141,20 @@ def _atomic_save(obj: Any, path: Path) -> None:
     os.replace(tmp, path)
 
 
+class StopRequest:
+    """SIGTERM (the launcher stopping its workers, or `kill`) asks the training loop to save a
+    checkpoint and stop at the next unroll boundary, instead of losing what it did since the
+    last periodic checkpoint (up to `checkpoint_seconds`)."""
+
+    def __init__(self):
+        self.requested = False
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, self._request)
+
+    def _request(self, signum, frame) -> None:
+        self.requested = True
+
+
 def _rng_state(rng: np.random.Generator) -> str:
     return json.dumps(rng.bit_generator.state)
 
@@ -225,7 +241,11 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     last_save, start, start_steps = time.monotonic(), time.perf_counter(), counters["env_steps"]
     returns, completions, step_rewards, losses = [], [], [], []
     obs = env.reset()
+    stop = StopRequest()
     while counters["env_steps"] < total_steps:
+        if stop.requested:  # SIGTERM between unrolls: keep every step taken so far
+            save()
+            raise SystemExit(f"stopped at env step {counters['env_steps']}; checkpoint saved in {checkpoint}")
         seq_obs, seq_act, seq_rew, seq_disc, seq_logmu = [stored(obs)], [], [], [], []
         done = False
         for _ in range(unroll):

@@ -170,9 +170,10 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
                         failed.append(f"clip {entry.id} ({entry.behaviour}) failed, exit code {proc.exitcode}; "
                                       f"see {out / 'error.txt'}")
     finally:
-        for _, _, proc in running:  # Ctrl-C: stop the workers; their checkpoints stay
+        for _, _, proc in running:  # Ctrl-C / kill: workers save a checkpoint at their next unroll and stop
             proc.terminate()
-            proc.join(timeout=10)
+        for _, _, proc in running:
+            proc.join(timeout=120)
         for bar in bars.values():
             bar.close()
         signal.signal(signal.SIGTERM, previous)
