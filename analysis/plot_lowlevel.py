@@ -18,6 +18,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
+from matplotlib.ticker import EngFormatter  # noqa: E402
 
 
 def load(run_dir: Path) -> dict[str, pd.DataFrame]:
@@ -46,6 +47,7 @@ def plot(run_dir: Path, out: Path) -> Path:
 def _save_curves(fig, axes, out: Path) -> Path:
     for ax in axes:
         ax.set_xlabel("env steps")
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))  # 500k, 1M: full integers overlap
         ax.grid(alpha=0.3)
     axes[0].legend()
     fig.tight_layout()
