@@ -133,11 +133,12 @@ def validate(cfg: DictConfig) -> None:
             "humanoid", True)]
         raise ConfigError(f"motion-capture tracking needs a CMU humanoid body, not body={body.name}; "
                           f"allowed: {', '.join(humanoids)}")
-    threshold = cfg.task.get("termination_error")
-    if threshold is not None and (isinstance(threshold, bool) or not isinstance(threshold, (int, float))
-                                  or threshold <= 0):
-        raise ConfigError(f"task.termination_error={threshold!r} must be a positive pose error "
-                          f"(e.g. 0.15) or null (failure by contact only)")
+    for key, example in (("termination_error", "a positive pose error (e.g. 0.15)"),
+                         ("heading_termination", "a positive heading error in rad (e.g. 0.5)")):
+        threshold = cfg.task.get(key)
+        if threshold is not None and (isinstance(threshold, bool) or not isinstance(threshold, (int, float))
+                                      or threshold <= 0):
+            raise ConfigError(f"task.{key}={threshold!r} must be {example} or null (off)")
     if cfg.task.kind == "tracking" and cfg.stage == "train":
         raise ConfigError("task=tracking is the low-level tracking task: train experts with stage=lowlevel "
                           "(or drive it with stage=rollout); stage=train takes a high-level task: "

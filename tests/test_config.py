@@ -129,6 +129,7 @@ def _hvc_run(*args, cwd):
     (["torch_threads=0"], "torch_threads=0 must be a positive integer or auto"),
     (["num_envs=2", "in_process_envs=3"], "in_process_envs=3 exceeds num_envs=2"),
     (["stage=lowlevel", "task=tracking", "task.termination_error=-0.1"], "task.termination_error=-0.1 must be"),
+    (["stage=lowlevel", "task=tracking", "task.heading_termination=0"], "task.heading_termination=0 must be"),
     (["controller=fragments", "task=forage", "library=null", "num_envs=1"], "stage=lowlevel clips=forage"),
 ])
 def test_cli_rejects_bad_values_with_one_line_before_work(tmp_path, args, needle):

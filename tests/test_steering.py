@@ -155,3 +155,39 @@ def test_lean_tilts_the_root_into_the_turn_by_the_centripetal_angle(cycle):
         assert roll(t) == pytest.approx(lean_angle(speed, rate), abs=0.05)
         assert leaned.position[t, 2] < upright.position[t, 2]
     assert roll(L) > 0 > roll(L + 6)  # the second cycle ramps from the first's lean
+
+
+def test_heading_termination_fails_a_body_that_does_not_turn():
+    from conftest import plain_cfg
+    from hvc.config import compose
+    from hvc.envs.fast_env import FastEnv
+    from hvc.lowlevel.tracking import heading_error
+    from hvc.mocap.clip_sets import select_entry
+    from hvc.mocap.source import find_mocap_file
+
+    cfg = compose(["stage=lowlevel", "task=tracking", "clips=steerable"])
+    failed = {}
+    for threshold in (None, 0.3):
+        task, body, render = plain_cfg("stage=lowlevel", "task=tracking", "clips=steerable")
+        task.update(clip=select_entry(cfg.clips, None).as_dict(), mocap_file=str(find_mocap_file(None, "2019")),
+                    random_start=False, heading_termination=threshold)
+        env = FastEnv.build(task, body, render, seed=0)
+        logic = env.layout.logic
+        logic.held_rate = 1.5  # the reference turns left; the body is driven straight, open loop
+        env.reset()
+        L = logic.cycle.num_steps
+        straight, _ = steer_cycle(logic.cycle, [0.0])
+        for t in range(L - 1):
+            env.step(np.clip(logic.pose_to_actuation(straight.joints[min(t + 1, L - 1)]), -1, 1))
+            if logic.failure:
+                break
+        failed[threshold] = (logic.t, logic.contact_failure(env.data),
+                             heading_error(logic.body_now.quaternion, logic.reference_now.quaternion))
+        env.close()
+    step, contact, _ = failed[None]
+    # without it, open-loop play stays up for a while (it falls eventually, by contact)
+    assert step >= 10
+    # with it, the heading lag ends the episode first: 0.3 rad at 1.5 rad/s is about 0.2 s (7 steps),
+    # give or take the gait's own sway, and no body part has touched the ground
+    step_h, contact_h, error_h = failed[0.3]
+    assert 3 <= step_h < step and not contact_h and error_h < -0.3, failed

@@ -5,7 +5,7 @@ policy sees proprioception plus the normalised time in the clip (a sawtooth phas
 looped gait cycles); the reward is the paper's tracking reward against the reference
 at the new time; the episode fails when any body part other than the hands and feet
 touches the ground (and, with `termination_error`, when the pose strays from the
-reference), and ends at the clip's end.
+reference; with `heading_termination`, when the heading does), and ends at the clip's end.
 """
 from __future__ import annotations
 
@@ -68,6 +68,12 @@ def pose_error(body: TrackingFeatures, ref: TrackingFeatures) -> float:
     return 0.5 * joints + 0.5 * float(np.mean(ee))
 
 
+def heading_error(body_quaternion: np.ndarray, ref_quaternion: np.ndarray) -> float:
+    """Body heading minus the reference's (rad, wrapped to [-pi, pi))."""
+    body, ref = (float(root_heading(np.asarray(q)[None])[0]) for q in (body_quaternion, ref_quaternion))
+    return (body - ref + np.pi) % (2 * np.pi) - np.pi
+
+
 class TrackingLogic(TaskLogic):
     observation_size = 1
     reference_per_episode = False  # True where each reset draws a new reference
@@ -102,6 +108,8 @@ class TrackingLogic(TaskLogic):
         self.random_start = bool(cfg.get("random_start", True))
         threshold = cfg.get("termination_error")  # checked with the config (hvc.config.validate)
         self.termination_error = None if threshold is None else float(threshold)
+        heading = cfg.get("heading_termination")
+        self.heading_termination = None if heading is None else float(heading)
         self.t = 0
         self.failure = False
         self.last_terms: dict[str, float] = {}
@@ -157,8 +165,7 @@ class TrackingLogic(TaskLogic):
         a fraction of a turn, holds the orientation term (weight 20 of 30) and so the reward
         near zero whatever the policy does."""
         body = data.qpos[self.root_qpos + 3:self.root_qpos + 7]
-        h_body, h_ref = (float(root_heading(q[None])[0]) for q in (body, self.reference.quaternion[t]))
-        yaw = (h_body - h_ref + np.pi) % (2 * np.pi) - np.pi
+        yaw = heading_error(body, self.reference.quaternion[t])
         turn_from(self.reference, t, yaw, data.qpos[self.root_qpos:self.root_qpos + 2])
 
     def after_step(self, model, data, rng):
@@ -168,7 +175,9 @@ class TrackingLogic(TaskLogic):
         self.body_now, self.reference_now = self.body_features(data), self.reference_features(self.t)
         self.failure = self.contact_failure(data) or (
             self.termination_error is not None
-            and pose_error(self.body_now, self.reference_now) > self.termination_error)
+            and pose_error(self.body_now, self.reference_now) > self.termination_error) or (
+            self.heading_termination is not None
+            and abs(heading_error(self.body_now.quaternion, self.reference_now.quaternion)) > self.heading_termination)
 
     def reward(self, model, data):
         """Against the features `after_step` read for this step (the env calls it right after)."""

@@ -300,7 +300,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
             raise SystemExit(f"parent process {parent_pid} is gone; checkpoint saved in {checkpoint}")
     save()
     # scored as `stage=evaluate` scores it: failure by contact only, whatever termination trained it
-    env.layout.logic.termination_error = None
+    env.layout.logic.termination_error = env.layout.logic.heading_termination = None
     final = evaluate(env, _greedy(NumpyPolicy.from_torch(policy)), int(cfg["eval_episodes"]), "eval_")
     metrics.log(counters["env_steps"], final, learner_steps=learner.steps * batch_size * unroll)
     metrics.close()
