@@ -36,15 +36,13 @@ def sensitivity(run_dir: Path, states: int = 2000) -> dict:
     cfg = OmegaConf.load(run_dir / "config_resolved.yaml")
     [expert] = sorted((run_dir / "experts").glob("*/checkpoint.pt"))
     state = torch.load(expert, weights_only=True)
-    weights, critic_weights = state["learner"]["policy"], state["learner"]["critic"]
-    policy_size = weights["normalizer.mean"].shape[0]
-    action_size = weights[[k for k in weights if k.endswith("bias")][-1]].shape[0]
-    policy = GaussianPolicy(policy_size, action_size, cfg.lowlevel.hidden, cfg.lowlevel.sigma)
-    policy.load_state_dict(weights)
+    policy = GaussianPolicy.from_weights(state["learner"]["policy"], cfg.lowlevel.hidden, cfg.lowlevel.sigma)
+    critic_weights = state["learner"]["critic"]
+    action_size = policy.net[-1].out_features
     critic = QNetwork(critic_weights["normalizer.mean"].shape[0], action_size, cfg.lowlevel.critic_hidden)
     critic.load_state_dict(critic_weights)
     obs = state["replay"]["obs"][:states, 0].clone()
-    rate_column = policy_size - 1  # the steerable policy's last input (SteerableTrackingLogic.observation)
+    rate_column = policy.obs_size - 1  # the steerable policy's last input (SteerableTrackingLogic.observation)
     tracking = cfg.task if cfg.task.kind == "tracking" else group_config("task", "tracking")  # as training built it
     rate = float(max(abs(r) for r in tracking.turn_rates))
 

@@ -97,30 +97,45 @@ def test_turn_from_turns_and_moves_only_the_rest_of_the_reference(cycle):
     assert L > t
 
 
-def test_each_steered_cycle_starts_from_the_body_heading():
-    """Whatever the body did in a cycle, the next cycle's reference starts where it faces."""
+def _straight_under_a_left_turn(*overrides: str, **task_updates):
+    """The steerable tracking env from the cycle's first step, its reference turning left at
+    1.5 rad/s, and a function driving the body straight open loop for up to n steps (stopping at
+    a failure when asked)."""
     from conftest import plain_cfg
-    from hvc.lowlevel.reward import quat_log_norm
-    from hvc.rotations import quat_conj, quat_mul
     from hvc.config import compose
     from hvc.envs.fast_env import FastEnv
     from hvc.mocap.clip_sets import select_entry
     from hvc.mocap.source import find_mocap_file
 
     cfg = compose(["stage=lowlevel", "task=tracking", "clips=steerable"])
-    for reanchor in (True, False):
-        task, body, render = plain_cfg("stage=lowlevel", "task=tracking", "clips=steerable",
-                                       f"task.reanchor={str(reanchor).lower()}")
-        task.update(clip=select_entry(cfg.clips, None).as_dict(), mocap_file=str(find_mocap_file(None, "2019")),
-                    random_start=False)
-        env = FastEnv.build(task, body, render, seed=0)
-        logic = env.layout.logic
-        logic.held_rate = 1.5  # the reference turns left; the body is driven straight, open loop
-        env.reset()
-        L = logic.cycle.num_steps
-        straight, _ = steer_cycle(logic.cycle, [0.0])
-        for t in range(L):
+    task, body, render = plain_cfg("stage=lowlevel", "task=tracking", "clips=steerable", *overrides)
+    task.update(clip=select_entry(cfg.clips, None).as_dict(), mocap_file=str(find_mocap_file(None, "2019")),
+                random_start=False, **task_updates)
+    env = FastEnv.build(task, body, render, seed=0)
+    logic = env.layout.logic
+    logic.held_rate = 1.5
+    env.reset()
+    L = logic.cycle.num_steps
+    straight, _ = steer_cycle(logic.cycle, [0.0])
+
+    def drive(n: int, stop_on_failure: bool = False) -> None:
+        for t in range(n):
             env.step(np.clip(logic.pose_to_actuation(straight.joints[min(t + 1, L - 1)]), -1, 1))
+            if stop_on_failure and logic.failure:
+                return
+
+    return env, logic, drive
+
+
+def test_each_steered_cycle_starts_from_the_body_heading():
+    """Whatever the body did in a cycle, the next cycle's reference starts where it faces."""
+    from hvc.lowlevel.reward import quat_log_norm
+    from hvc.rotations import quat_conj, quat_mul
+
+    for reanchor in (True, False):
+        env, logic, drive = _straight_under_a_left_turn(f"task.reanchor={str(reanchor).lower()}")
+        L = logic.cycle.num_steps
+        drive(L)
         body_heading = float(root_heading(env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7][None])[0])
         ref_heading = float(root_heading(logic.reference.quaternion[L][None])[0])
         body_q = env.data.qpos[logic.root_qpos + 3:logic.root_qpos + 7]
@@ -158,29 +173,12 @@ def test_lean_tilts_the_root_into_the_turn_by_the_centripetal_angle(cycle):
 
 
 def test_heading_termination_fails_a_body_that_does_not_turn():
-    from conftest import plain_cfg
-    from hvc.config import compose
-    from hvc.envs.fast_env import FastEnv
     from hvc.lowlevel.tracking import heading_error
-    from hvc.mocap.clip_sets import select_entry
-    from hvc.mocap.source import find_mocap_file
 
-    cfg = compose(["stage=lowlevel", "task=tracking", "clips=steerable"])
     failed = {}
     for threshold in (None, 0.3):
-        task, body, render = plain_cfg("stage=lowlevel", "task=tracking", "clips=steerable")
-        task.update(clip=select_entry(cfg.clips, None).as_dict(), mocap_file=str(find_mocap_file(None, "2019")),
-                    random_start=False, heading_termination=threshold)
-        env = FastEnv.build(task, body, render, seed=0)
-        logic = env.layout.logic
-        logic.held_rate = 1.5  # the reference turns left; the body is driven straight, open loop
-        env.reset()
-        L = logic.cycle.num_steps
-        straight, _ = steer_cycle(logic.cycle, [0.0])
-        for t in range(L - 1):
-            env.step(np.clip(logic.pose_to_actuation(straight.joints[min(t + 1, L - 1)]), -1, 1))
-            if logic.failure:
-                break
+        env, logic, drive = _straight_under_a_left_turn(heading_termination=threshold)
+        drive(logic.cycle.num_steps - 1, stop_on_failure=True)
         failed[threshold] = (logic.t, logic.contact_failure(env.data),
                              heading_error(logic.body_now.quaternion, logic.reference_now.quaternion))
         env.close()

@@ -49,6 +49,15 @@ class GaussianPolicy(nn.Module):
         self.net = mlp([obs_size, *hidden, action_size])
         self.sigma = float(sigma)
 
+    @classmethod
+    def from_weights(cls, weights: dict, hidden: Sequence[int], sigma: float) -> "GaussianPolicy":
+        """A policy from a checkpoint's state dict, its input and action sizes read off the weights."""
+        obs_size = weights["normalizer.mean"].shape[0]
+        action_size = [v for k, v in weights.items() if k.endswith("bias")][-1].shape[0]
+        policy = cls(obs_size, action_size, hidden, sigma)
+        policy.load_state_dict(weights)
+        return policy
+
     def mean(self, obs: torch.Tensor) -> torch.Tensor:
         return torch.tanh(self.net(self.normalizer(obs[..., :self.obs_size])))
 

@@ -238,11 +238,7 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path, 
             continue
         out = expert_dir(run_dir, i, entry)
         state = torch.load(out / "checkpoint.pt", weights_only=True)
-        weights = state["learner"]["policy"]
-        obs_size = weights["normalizer.mean"].shape[0]
-        action_size = [v for k, v in weights.items() if k.endswith("bias")][-1].shape[0]
-        policy = GaussianPolicy(obs_size, action_size, cfg.lowlevel.hidden, cfg.lowlevel.sigma)
-        policy.load_state_dict(weights)
+        policy = GaussianPolicy.from_weights(state["learner"]["policy"], cfg.lowlevel.hidden, cfg.lowlevel.sigma)
         tracking = cfg.task if cfg.task.kind == "tracking" else group_config("task", "tracking")
         if entry.id == "switching":  # the switching policy: one Markov walk over the set stands for it
             from hvc.mocap.switching import MAX_ACCEL, markov_reference
