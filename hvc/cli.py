@@ -7,12 +7,14 @@ import sys
 from pathlib import Path
 
 import hydra
+from hydra import compose
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from hvc.config import CONF_DIR, ConfigError, check_group_overrides, resolve_parallelism, validate
 from hvc.errors import HvcUserError
 from hvc.provenance import record_command
+from hvc.runtime.run_dirs import merge_overrides, save_overrides, saved_overrides
 
 log = logging.getLogger("hvc")
 
@@ -24,32 +26,19 @@ USER_ERRORS = (FileNotFoundError, HvcUserError, ConfigError)
 def _run(cfg: DictConfig) -> None:
     try:
         validate(cfg)
+        run_dir = Path(HydraConfig.get().runtime.output_dir)
+        options = list(HydraConfig.get().overrides.task)  # this job's own: a multirun job's values
+        if cfg.get("resume"):  # go on with the run's own options, this command's winning
+            run_dir = _run_to_resume(cfg, run_dir)
+            options = merge_overrides(saved_overrides(run_dir), options)
+            cfg = _composed(cfg, options)
         resolve_parallelism(cfg)
     except ConfigError as error:
         print(f"hvc-run: error: {error}", file=sys.stderr)
         sys.exit(2)
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    if cfg.get("resume") is True:  # resume=true: the newest earlier run of this job
-        from hydra.types import RunMode
-
-        from hvc.runtime.run_dirs import latest_run_dir
-
-        try:
-            if HydraConfig.get().mode == RunMode.MULTIRUN:
-                raise ConfigError("resume=true picks one run; a sweep's jobs would all pick the same one: "
-                                  "resume each with resume=<run dir>")
-            run_dir = latest_run_dir(OmegaConf.to_container(cfg, resolve=True), run_dir)
-        except ConfigError as error:
-            print(f"hvc-run: error: {error}", file=sys.stderr)
-            sys.exit(2)
-        log.info("resume=true: continuing %s", run_dir)
-    elif cfg.get("resume"):
-        run_dir = Path(cfg.resume)
-    if cfg.get("resume") and not run_dir.is_dir():
-        print(f"hvc-run: error: resume={cfg.resume} is not a run directory", file=sys.stderr)
-        sys.exit(2)
     overrides = HydraConfig.get().overrides  # this job's own: a multirun job's values, not the sweep's lists
     record_command(run_dir, [*overrides.task, *(o for o in overrides.hydra if not o.startswith("hydra.mode="))])
+    save_overrides(run_dir, options)
     # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     log.info("stage=%s run dir %s", cfg.stage, run_dir)
@@ -63,6 +52,35 @@ def _run(cfg: DictConfig) -> None:
         sys.exit(130)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
 
+
+def _run_to_resume(cfg: DictConfig, output_dir: Path) -> Path:
+    """resume=<run dir>, or resume=true: the newest earlier run of this job."""
+    if cfg.resume is True:
+        from hydra.types import RunMode
+
+        from hvc.runtime.run_dirs import latest_run_dir
+
+        if HydraConfig.get().mode == RunMode.MULTIRUN:
+            raise ConfigError("resume=true picks one run; a sweep's jobs would all pick the same one: "
+                              "resume each with resume=<run dir>")
+        run_dir = latest_run_dir(OmegaConf.to_container(cfg, resolve=True), output_dir)
+        log.info("resume=true: continuing %s", run_dir)
+    else:
+        run_dir = Path(cfg.resume)
+    if not run_dir.is_dir():
+        raise ConfigError(f"resume={cfg.resume} is not a run directory")
+    return run_dir
+
+
+def _composed(cfg: DictConfig, options: list[str]) -> DictConfig:
+    """The config for `options` (a resume's: the run's own options restored)."""
+    given = list(HydraConfig.get().overrides.task)
+    if options == given:
+        return cfg
+    log.info("resuming with the run's own options: %s", " ".join(o for o in options if o not in given))
+    cfg = compose(config_name="config", overrides=options)
+    validate(cfg)
+    return cfg
 
 def _dispatch(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.stage == "rollout":

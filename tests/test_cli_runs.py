@@ -135,7 +135,9 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     pace = resolved["algorithm"]["updates_per_unroll"]
     rounds = -(-80 // (2 * resolved["task"]["agent"]["unroll"]))  # 2 envs, one unroll each per round
     assert first["counters"]["updates"] == int(rounds * 2 * pace)  # the learner's pace per unroll added
-    _run("total_steps=160", *common, f"resume={run_dir}", cwd=tmp_path)
+    _run("total_steps=160", f"resume={run_dir}", cwd=tmp_path)  # the run's own options come back by themselves
+    assert yaml.safe_load((run_dir / "config_resolved.yaml").read_text()) == {**resolved, "total_steps": 160,
+                                                                              "resume": str(run_dir)}
     second = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert second["counters"]["env_steps"] >= 160 > first["counters"]["env_steps"]
     assert second["counters"]["updates"] > first["counters"]["updates"]
@@ -409,3 +411,16 @@ def test_resume_true_continues_the_newest_run_of_the_same_job(tmp_path):
     sweep = subprocess.run([sys.executable, "-m", "hvc.cli", "-m", "total_steps=40", *common, "seed=0,1",
                             "resume=true"], capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert sweep.returncode == 2 and "resume=true picks one run" in sweep.stderr
+
+
+def test_a_resume_keeps_the_runs_options_and_the_new_command_wins(tmp_path):
+    from hvc.runtime.run_dirs import merge_overrides, save_overrides, saved_overrides
+
+    (tmp_path / ".hydra").mkdir()
+    (tmp_path / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(["task=tracking", "+x=1", "total_steps=10"]))
+    assert saved_overrides(tmp_path) == ["task=tracking", "+x=1", "total_steps=10"]  # a run from before the record
+    merged = merge_overrides(saved_overrides(tmp_path), ["total_steps=20", "x=2", f"resume={tmp_path}"])
+    assert merged == ["task=tracking", "total_steps=20", "x=2", f"resume={tmp_path}"]
+    save_overrides(tmp_path, merged)
+    assert saved_overrides(tmp_path) == ["task=tracking", "total_steps=20", "x=2"]  # ours first; no resume= in it
+    assert merge_overrides(saved_overrides(tmp_path), ["resume=true"])[-1] == "resume=true"

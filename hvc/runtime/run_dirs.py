@@ -1,4 +1,5 @@
-"""Finding the run to continue for `resume=true`: the newest earlier run of the same job.
+"""Finding the run to continue (`resume=true`: the newest earlier run of the same job) and
+the options it ran with, so that `resume=<run dir>` alone continues it as it was.
 
 Runs live in `outputs/runs/<date>/<time>_<task>_<controller>` (conf/config.yaml); a run is
 "the same job" when its resolved config has the same stage, task, controller, clip set,
@@ -40,3 +41,30 @@ def latest_run_dir(config: dict, current: Path, root: Path = RUNS_ROOT) -> Path:
     job = " ".join(f"{k}={v}" for k, v in zip((*JOB_KEYS, "seed"), want))
     raise ConfigError(f"resume=true found no earlier run with a checkpoint of {job} under {root}/; "
                       f"pass resume=<run dir>")
+
+
+OVERRIDES_FILE = "overrides.yaml"
+
+
+def _key(override: str) -> str:
+    return override.partition("=")[0].lstrip("+~")
+
+
+def saved_overrides(run_dir: Path) -> list[str]:
+    """The options a run was started (or last resumed) with: our own record, else Hydra's
+    `.hydra/overrides.yaml` of the first start (runs made before the record existed)."""
+    for path in (run_dir / OVERRIDES_FILE, run_dir / ".hydra" / "overrides.yaml"):
+        if path.is_file():
+            return [str(o) for o in (yaml.safe_load(path.read_text()) or [])]
+    return []
+
+
+def merge_overrides(saved: list[str], new: list[str]) -> list[str]:
+    """A resume's options: the run's saved ones (but its `resume=`), then the new command's,
+    which win where both set the same key (e.g. a larger total_steps)."""
+    given = {_key(o) for o in new}
+    return [o for o in saved if _key(o) not in given and _key(o) != "resume"] + list(new)
+
+
+def save_overrides(run_dir: Path, overrides: list[str]) -> None:
+    (run_dir / OVERRIDES_FILE).write_text(yaml.safe_dump([o for o in overrides if _key(o) != "resume"]))
