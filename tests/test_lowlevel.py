@@ -193,6 +193,16 @@ def test_library_round_trip_without_pickle(tmp_path):
         assert json.loads(str(data["meta"]))["version"] == 1
 
 
+def test_a_cut_library_keeps_each_experts_env_steps(tmp_path):
+    one = _library().experts[0]
+    two = Expert({**one.entry, "id": "CMU_000_02", "behaviour": "run"}, one.policy, one.reference)
+    lib = ExpertLibrary([one, two], {"provenance": {"env_steps": [100, 200]}})
+    cut = ExpertLibrary.load(lib.subset([1]).save(tmp_path / "run_only.npz"))
+    assert cut.clip_ids == ["CMU_000_02"] and cut.meta["provenance"]["env_steps"] == [200]
+    with pytest.raises(ValueError, match="2 entries for 1 experts"):  # cut by hand: the steps would pair wrongly
+        ExpertLibrary([two], lib.meta).save(tmp_path / "bad.npz")
+
+
 def test_library_from_another_version_fails_clearly(tmp_path):
     path = _library().save(tmp_path / "lib.npz")
     with np.load(path) as data:

@@ -57,8 +57,20 @@ class ExpertLibrary:
     def clip_ids(self) -> list[str]:
         return [e.entry["id"] for e in self.experts]
 
+    def subset(self, keep: Sequence[int]) -> "ExpertLibrary":
+        """The experts at `keep`, with their provenance env steps (a list by position) kept in step."""
+        meta = dict(self.meta)
+        steps = meta.get("provenance", {}).get("env_steps")
+        if steps is not None:
+            meta["provenance"] = {**meta["provenance"], "env_steps": [steps[i] for i in keep]}
+        return ExpertLibrary([self.experts[i] for i in keep], meta, self.behaviours)
+
     def save(self, path: str | Path) -> Path:
         path = Path(path)
+        steps = self.meta.get("provenance", {}).get("env_steps")
+        if steps is not None and len(steps) != len(self.experts):  # they pair by position: a misreport
+            raise ValueError(f"provenance env_steps has {len(steps)} entries for {len(self.experts)} experts; "
+                             f"cut a library with ExpertLibrary.subset, which keeps them in step")
         arrays: dict[str, np.ndarray] = {}
         for i, e in enumerate(self.experts):
             for j, (w, b) in enumerate(zip(e.policy.weights, e.policy.biases)):
