@@ -232,6 +232,11 @@ def test_structured_policy_trains_ships_and_evaluates(tmp_path, clips, line):
     else:
         attempted = int(re.search(r"of (\d+)", out).group(1))
         assert attempted > 0  # the walks switch behaviours within the episodes
+        kinds = re.findall(r"switch from=(\w+) to=(\w+) completed=[.\d]+ of (\d+)", out)
+        assert sum(int(n) for *_, n in kinds) == attempted  # every switch in one kind, named by its behaviours
+        graph = {("stand", "run"), ("run", "stand"), ("run", "left_turn"), ("left_turn", "run"),
+                 ("run", "right_turn"), ("right_turn", "run")}
+        assert {(a, b) for a, b, _ in kinds} <= graph
         from hvc.lowlevel.library import ExpertLibrary
 
         behaviours = ExpertLibrary.load(library).behaviours  # carried along: no mocap file needed to use it

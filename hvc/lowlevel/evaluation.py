@@ -115,9 +115,11 @@ def switching_transitions(env: FastEnv, act: Callable[[dict, object], np.ndarray
 
     A switch of the reference's Markov walk is attempted when the body reaches its step;
     it is completed when the body then keeps going for `hold_steps` (one gait cycle) or
-    until the walk ends, without a fall.
+    until the walk ends, without a fall. Also per kind of switch, `attempted/<a>-><b>` and
+    `completed/<a>-><b>` (behaviour indices): which transitions are hard.
     """
-    attempted = completed = 0
+    attempted: dict[tuple[int, int], int] = {}
+    completed: dict[tuple[int, int], int] = {}
     for _ in range(episodes):
         obs = env.reset()
         logic = env.layout.logic
@@ -129,7 +131,13 @@ def switching_transitions(env: FastEnv, act: Callable[[dict, object], np.ndarray
         end, fell = logic.t, logic.failure
         for switch in np.flatnonzero(np.diff(labels)) + 1:
             if start < switch <= end:
-                attempted += 1
-                completed += int(switch + hold_steps <= end or not fell)
-    return {"transitions_attempted": float(attempted),
-            "transitions_completed": completed / attempted if attempted else float("nan")}
+                kind = (int(labels[switch - 1]), int(labels[switch]))
+                attempted[kind] = attempted.get(kind, 0) + 1
+                completed[kind] = completed.get(kind, 0) + int(switch + hold_steps <= end or not fell)
+    total = sum(attempted.values())
+    per_kind = {}
+    for (a, b), n in sorted(attempted.items()):
+        per_kind[f"attempted/{a}->{b}"] = float(n)
+        per_kind[f"completed/{a}->{b}"] = completed[(a, b)] / n
+    return {"transitions_attempted": float(total),
+            "transitions_completed": sum(completed.values()) / total if total else float("nan"), **per_kind}

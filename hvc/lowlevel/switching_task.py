@@ -19,6 +19,7 @@ class SwitchingTrackingLogic(TrackingLogic):
     reference_per_episode = True
     def __init__(self, cfg, env):
         spec = cfg["clip"]  # {"switching": True, "entries": [...], "graph": {...}, "steps": n}
+        self.entries = spec["entries"]  # the behaviours' clip entries (names in the evaluation)
         # the behaviours' references: given (from a library), or built from the mocap file
         self.behaviours = spec.get("behaviours") or [
             build_reference(e, cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)), int(cfg.get("cycle_blend", 4)))

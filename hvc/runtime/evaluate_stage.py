@@ -70,6 +70,11 @@ def structured_scores(cfg: DictConfig, env, expert, act, metrics: MetricsLogger)
         scores = switching_transitions(env, act, int(cfg.episodes), gait_cycle_steps(env.layout.logic.behaviours))
         print(f"switch clip={clip} transitions_completed={scores['transitions_completed']:.2f} "
               f"of {scores['transitions_attempted']:.0f}")
+        names = [e.get("behaviour", e["id"]) for e in env.layout.logic.entries]
+        for key in [k for k in scores if k.startswith("attempted/")]:
+            a, b = (int(i) for i in key.split("/")[1].split("->"))
+            print(f"switch from={names[a]} to={names[b]} completed={scores['completed/' + key[10:]]:.2f} "
+                  f"of {scores[key]:.0f}")
         return scores
     return {}
 
