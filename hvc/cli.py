@@ -110,7 +110,19 @@ def _dispatch(cfg: DictConfig, run_dir: Path) -> dict:
     return summary
 
 
+def _with_resumed_options(argv: list[str]) -> list[str]:
+    """`resume=<run dir>`: the run's saved options after this command's (which win), before
+    Hydra composes, so that an option of the run's own groups (task.turn_rate_repeat of
+    task=tracking) can be changed on resume. resume=true is merged in _run, once found."""
+    dirs = [a.partition("=")[2] for a in argv if a.startswith("resume=")]
+    if len(dirs) != 1 or dirs[0].lower() == "true" or not Path(dirs[0]).is_dir():
+        return argv
+    given = [a for a in argv if not a.startswith("-")]
+    return argv + merge_overrides(saved_overrides(Path(dirs[0])), given)[:-len(given) or None]
+
+
 def main() -> None:
+    sys.argv = [sys.argv[0], *_with_resumed_options(sys.argv[1:])]
     try:
         check_group_overrides(a for a in sys.argv[1:] if not a.startswith("-"))
     except ConfigError as error:

@@ -429,3 +429,17 @@ def test_a_resume_keeps_the_runs_options_and_the_new_command_wins(tmp_path):
     save_overrides(tmp_path, merged)
     assert saved_overrides(tmp_path) == ["task=tracking", "total_steps=20", "x=2"]  # ours first; no resume= in it
     assert merge_overrides(saved_overrides(tmp_path), ["resume=true"])[-1] == "resume=true"
+
+
+def test_a_resume_may_change_an_option_of_the_runs_own_groups(tmp_path):
+    from hvc.cli import _with_resumed_options
+    from hvc.config import compose
+    from hvc.runtime.run_dirs import save_overrides
+
+    save_overrides(tmp_path, ["stage=lowlevel", "clips=steerable", "task=tracking", "total_steps=10"])
+    argv = _with_resumed_options([f"resume={tmp_path}", "total_steps=20", "task.turn_rate_repeat=0.5"])
+    assert argv[:3] == [f"resume={tmp_path}", "total_steps=20", "task.turn_rate_repeat=0.5"]
+    assert sorted(argv[3:]) == ["clips=steerable", "stage=lowlevel", "task=tracking"]  # total_steps: the new one
+    cfg = compose(argv)  # task.turn_rate_repeat exists only in task=tracking, restored before Hydra composes
+    assert cfg.task.name == "tracking" and cfg.task.turn_rate_repeat == 0.5 and cfg.total_steps == 20
+    assert _with_resumed_options(["resume=true", "x=1"]) == ["resume=true", "x=1"]  # found later, in _run
