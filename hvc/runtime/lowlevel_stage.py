@@ -105,7 +105,8 @@ def warm_start_policies(cfg: DictConfig, entries) -> dict[int, object]:
     if not found:
         raise ConfigError(f"lowlevel.warm_start={source} has no expert for any clip of clips={cfg.clips.name} "
                          f"(it has {have})")
-    log.info("warm-starting %d of %d clips from %s", len(found), len(entries), source)
+    log.info("warm start for %d of %d clips from %s (clips with a checkpoint resume from it instead)", len(found),
+             len(entries), source)
     return found
 
 
