@@ -113,12 +113,16 @@ def _dispatch(cfg: DictConfig, run_dir: Path) -> dict:
 def _with_resumed_options(argv: list[str]) -> list[str]:
     """`resume=<run dir>`: the run's saved options after this command's (which win), before
     Hydra composes, so that an option of the run's own groups (task.turn_rate_repeat of
-    task=tracking) can be changed on resume. resume=true is merged in _run, once found."""
+    task=tracking) can be changed on resume, and Hydra's run dir set to the run's.
+    resume=true is merged in _run, once found."""
     dirs = [a.partition("=")[2] for a in argv if a.startswith("resume=")]
     if len(dirs) != 1 or dirs[0].lower() == "true" or not Path(dirs[0]).is_dir():
         return argv
     given = [a for a in argv if not a.startswith("-")]
-    return argv + merge_overrides(saved_overrides(Path(dirs[0])), given)[:-len(given) or None]
+    restored = merge_overrides(saved_overrides(Path(dirs[0])), given)[:-len(given) or None]
+    if not any(a.startswith("hydra.run.dir=") for a in argv):  # Hydra's log and records go to the run
+        restored.append(f"hydra.run.dir={dirs[0]}")            # too, not to a new dir of their own
+    return argv + restored
 
 
 def main() -> None:

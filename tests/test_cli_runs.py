@@ -136,6 +136,7 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     rounds = -(-80 // (2 * resolved["task"]["agent"]["unroll"]))  # 2 envs, one unroll each per round
     assert first["counters"]["updates"] == int(rounds * 2 * pace)  # the learner's pace per unroll added
     _run("total_steps=160", f"resume={run_dir}", cwd=tmp_path)  # the run's own options come back by themselves
+    assert list((tmp_path / "outputs" / "runs").glob("*/*")) == [run_dir]  # and no new dir was made for it
     assert yaml.safe_load((run_dir / "config_resolved.yaml").read_text()) == {**resolved, "total_steps": 160,
                                                                               "resume": str(run_dir)}
     second = torch.load(run_dir / "checkpoint.pt", weights_only=True)
@@ -439,7 +440,8 @@ def test_a_resume_may_change_an_option_of_the_runs_own_groups(tmp_path):
     save_overrides(tmp_path, ["stage=lowlevel", "clips=steerable", "task=tracking", "total_steps=10"])
     argv = _with_resumed_options([f"resume={tmp_path}", "total_steps=20", "task.turn_rate_repeat=0.5"])
     assert argv[:3] == [f"resume={tmp_path}", "total_steps=20", "task.turn_rate_repeat=0.5"]
-    assert sorted(argv[3:]) == ["clips=steerable", "stage=lowlevel", "task=tracking"]  # total_steps: the new one
-    cfg = compose(argv)  # task.turn_rate_repeat exists only in task=tracking, restored before Hydra composes
+    assert sorted(argv[3:]) == ["clips=steerable", f"hydra.run.dir={tmp_path}", "stage=lowlevel",
+                                "task=tracking"]  # total_steps: the new one; no new dir for the resume
+    cfg = compose([a for a in argv if not a.startswith("hydra.")])  # task.turn_rate_repeat exists only in task=tracking, restored before Hydra composes
     assert cfg.task.name == "tracking" and cfg.task.turn_rate_repeat == 0.5 and cfg.total_steps == 20
     assert _with_resumed_options(["resume=true", "x=1"]) == ["resume=true", "x=1"]  # found later, in _run
