@@ -37,7 +37,9 @@ def _run(cfg: DictConfig) -> None:
         print(f"hvc-run: error: {error}", file=sys.stderr)
         sys.exit(2)
     overrides = HydraConfig.get().overrides  # this job's own: a multirun job's values, not the sweep's lists
-    record_command(run_dir, [*overrides.task, *(o for o in overrides.hydra if not o.startswith("hydra.mode="))])
+    resumed = [f"resume={run_dir}" if cfg.get("resume") and o.startswith("resume=") else o  # resume=true: the
+               for o in overrides.task]                                                     # run it found
+    record_command(run_dir, [*resumed, *(o for o in overrides.hydra if not o.startswith("hydra.mode="))])
     save_overrides(run_dir, options)
     # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
@@ -118,16 +120,20 @@ def _with_resumed_options(argv: list[str]) -> list[str]:
     dirs = [a.partition("=")[2] for a in argv if a.startswith("resume=")]
     if len(dirs) != 1 or dirs[0].lower() == "true" or not Path(dirs[0]).is_dir():
         return argv
+    if {"-m", "--multirun"} & set(argv):
+        raise ConfigError(f"resume={dirs[0]} continues one run; a sweep's jobs would all write to it: "
+                          f"resume each job's run on its own")
     given = [a for a in argv if not a.startswith("-")]
     restored = merge_overrides(saved_overrides(Path(dirs[0])), given)[:-len(given) or None]
-    if not any(a.startswith("hydra.run.dir=") for a in argv):  # Hydra's log and records go to the run
-        restored.append(f"hydra.run.dir={dirs[0]}")            # too, not to a new dir of their own
+    if not any(a.startswith("hydra.run.dir=") for a in argv):  # Hydra's log goes to the run too, not to
+        restored.append(f"hydra.run.dir={dirs[0]}")            # a new dir of its own; its .hydra/ keeps
+        restored.append("hydra.output_subdir=null")            # the first start's record
     return argv + restored
 
 
 def main() -> None:
-    sys.argv = [sys.argv[0], *_with_resumed_options(sys.argv[1:])]
     try:
+        sys.argv = [sys.argv[0], *_with_resumed_options(sys.argv[1:])]
         check_group_overrides(a for a in sys.argv[1:] if not a.startswith("-"))
     except ConfigError as error:
         print(f"hvc-run: error: {error}", file=sys.stderr)

@@ -319,7 +319,7 @@ def test_lowlevel_reuses_experts_of_another_library(tmp_path):
     from hvc.lowlevel.library import ExpertLibrary, shipped_library
 
     shipped = ExpertLibrary.load(shipped_library())
-    partial = ExpertLibrary(shipped.experts[:3], shipped.meta).save(tmp_path / "three.npz")
+    partial = shipped.subset(range(3)).save(tmp_path / "three.npz")
     tiny = ["lowlevel.bc_steps=10", "lowlevel.bc_rollouts=1", "lowlevel.min_replay_unrolls=2",
             "lowlevel.batch_size=2", "lowlevel.eval_episodes=1", "lowlevel.hidden=[256,256]",
             "lowlevel.critic_hidden=[16]"]
@@ -390,7 +390,7 @@ def test_switching_policy_distils_the_experts_of_its_behaviours(tmp_path):
     assert metrics["distill_mse_after"] < 0.5 * metrics["distill_mse_before"]  # it regressed onto the experts
     assert "bc_mse_after" not in metrics.index
     shipped = ExpertLibrary.load(shipped_library())
-    three = ExpertLibrary(shipped.experts[:3], shipped.meta).save(tmp_path / "three.npz")
+    three = shipped.subset(range(3)).save(tmp_path / "three.npz")
     bad = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "clips=switching",
                           f"lowlevel.warm_start={three}", "total_steps=10"], capture_output=True, text=True,
                          cwd=tmp_path, timeout=600)
@@ -412,7 +412,8 @@ def test_resume_true_continues_the_newest_run_of_the_same_job(tmp_path):
                             if (p / "checkpoint.pt").exists())  # seed 0's, then seed 3's
     _run("total_steps=80", *common, "resume=true", cwd=tmp_path)
     assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["counters"]["env_steps"] == 80
-    assert len((run_dir / "commands.log").read_text().splitlines()) == 2
+    commands = (run_dir / "commands.log").read_text().splitlines()
+    assert len(commands) == 2 and f"resume={run_dir.relative_to(tmp_path)}" in commands[1]  # the run it found
     assert len((other / "commands.log").read_text().splitlines()) == 1
     sweep = subprocess.run([sys.executable, "-m", "hvc.cli", "-m", "total_steps=40", *common, "seed=0,1",
                             "resume=true"], capture_output=True, text=True, cwd=tmp_path, timeout=600)
@@ -426,10 +427,13 @@ def test_a_resume_keeps_the_runs_options_and_the_new_command_wins(tmp_path):
     (tmp_path / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(["task=tracking", "+x=1", "total_steps=10"]))
     assert saved_overrides(tmp_path) == ["task=tracking", "+x=1", "total_steps=10"]  # a run from before the record
     merged = merge_overrides(saved_overrides(tmp_path), ["total_steps=20", "x=2", f"resume={tmp_path}"])
-    assert merged == ["task=tracking", "total_steps=20", "x=2", f"resume={tmp_path}"]
+    assert merged == ["task=tracking", "total_steps=20", "++x=2", f"resume={tmp_path}"]  # x is not in the schema
     save_overrides(tmp_path, merged)
-    assert saved_overrides(tmp_path) == ["task=tracking", "total_steps=20", "x=2"]  # ours first; no resume= in it
+    assert saved_overrides(tmp_path) == ["task=tracking", "total_steps=20", "++x=2"]  # ours first; no resume= in it
     assert merge_overrides(saved_overrides(tmp_path), ["resume=true"])[-1] == "resume=true"
+    # another group drops the old group's options (task.turn_rate_repeat is not an option of every task)
+    assert merge_overrides(["task=tracking", "task.turn_rate_repeat=0.5", "seed=1"], ["task=gaps"]) == ["seed=1",
+                                                                                                    "task=gaps"]
 
 
 def test_a_resume_may_change_an_option_of_the_runs_own_groups(tmp_path):
@@ -440,8 +444,12 @@ def test_a_resume_may_change_an_option_of_the_runs_own_groups(tmp_path):
     save_overrides(tmp_path, ["stage=lowlevel", "clips=steerable", "task=tracking", "total_steps=10"])
     argv = _with_resumed_options([f"resume={tmp_path}", "total_steps=20", "task.turn_rate_repeat=0.5"])
     assert argv[:3] == [f"resume={tmp_path}", "total_steps=20", "task.turn_rate_repeat=0.5"]
-    assert sorted(argv[3:]) == ["clips=steerable", f"hydra.run.dir={tmp_path}", "stage=lowlevel",
-                                "task=tracking"]  # total_steps: the new one; no new dir for the resume
+    assert sorted(argv[3:]) == ["clips=steerable", "hydra.output_subdir=null", f"hydra.run.dir={tmp_path}",
+                                "stage=lowlevel", "task=tracking"]  # total_steps: the new one; no new dir
     cfg = compose([a for a in argv if not a.startswith("hydra.")])  # task.turn_rate_repeat exists only in task=tracking, restored before Hydra composes
     assert cfg.task.name == "tracking" and cfg.task.turn_rate_repeat == 0.5 and cfg.total_steps == 20
     assert _with_resumed_options(["resume=true", "x=1"]) == ["resume=true", "x=1"]  # found later, in _run
+    from hvc.config import ConfigError
+
+    with pytest.raises(ConfigError, match="continues one run"):  # every job of a sweep would write to it
+        _with_resumed_options(["-m", f"resume={tmp_path}", "seed=0,1"])

@@ -71,8 +71,7 @@ def test_steerable_tracking_task_draws_rates_and_shows_them():
         import mujoco
         mujoco.mj_forward(env.model, env.data)
         reward, _ = logic.reward_fn(logic.body_features(env.data), logic.reference_features(logic.t))
-        # 1 up to the loop seam's blended steps, whose end effectors are crossfaded, not recomputed (< 1 mm)
-        assert reward == pytest.approx(1.0, abs=1e-3)
+        assert reward == pytest.approx(1.0, abs=1e-6)
     assert len(seen) == 5  # a new draw every episode
     env.close()
 

@@ -48,10 +48,11 @@ class SteerableTrackingLogic(TrackingLogic):
     def _random_rates(self, rng) -> np.ndarray:
         """One rate per cycle: uniform draws, each kept from the cycle before with probability `repeat`."""
         rates = rng.uniform(*self.turn_rates, self.cycles)
-        keep = rng.random(self.cycles) < self.repeat
-        for k in range(1, self.cycles):
-            if keep[k]:
-                rates[k] = rates[k - 1]
+        if self.repeat > 0:  # (no extra draw otherwise: the same episodes as before the option)
+            keep = rng.random(self.cycles) < self.repeat
+            for k in range(1, self.cycles):
+                if keep[k]:
+                    rates[k] = rates[k - 1]
         return rates
 
     def observation(self, model, data):

@@ -51,8 +51,8 @@ def _key(override: str) -> str:
 
 
 def saved_overrides(run_dir: Path) -> list[str]:
-    """The options a run was started (or last resumed) with: our own record, else Hydra's
-    `.hydra/overrides.yaml` of the first start (runs made before the record existed)."""
+    """The options a run goes on with: our own record (its first start's, updated by each
+    resume), else Hydra's `.hydra/overrides.yaml` (runs made before the record existed)."""
     for path in (run_dir / OVERRIDES_FILE, run_dir / ".hydra" / "overrides.yaml"):
         if path.is_file():
             return [str(o) for o in (yaml.safe_load(path.read_text()) or [])]
@@ -61,9 +61,16 @@ def saved_overrides(run_dir: Path) -> list[str]:
 
 def merge_overrides(saved: list[str], new: list[str]) -> list[str]:
     """A resume's options: the run's saved ones (but its `resume=`), then the new command's,
-    which win where both set the same key (e.g. a larger total_steps)."""
+    which win where both set the same key (e.g. a larger total_steps). A new group choice
+    drops the saved options inside that group (task=gaps: no task.turn_rate_repeat of
+    task=tracking), and a key the run added with `+` keeps being added (`++`)."""
+    from hvc.config import GROUPS
+
     given = {_key(o) for o in new}
-    return [o for o in saved if _key(o) not in given and _key(o) != "resume"] + list(new)
+    regrouped = tuple(f"{g}." for g in given & set(GROUPS))
+    kept = [o for o in saved if _key(o) not in given and _key(o) != "resume" and not _key(o).startswith(regrouped)]
+    added = {_key(o) for o in saved if o.startswith("+")}
+    return kept + [f"++{o}" if _key(o) in added and not o.startswith(("+", "~")) else o for o in new]
 
 
 def save_overrides(run_dir: Path, overrides: list[str]) -> None:
