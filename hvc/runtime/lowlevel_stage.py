@@ -100,7 +100,7 @@ def warm_start_policies(cfg: DictConfig, entries) -> dict[int, object]:
         if missing:
             raise ConfigError(f"lowlevel.warm_start={source} lacks experts for behaviours {missing} of "
                              f"clips={cfg.clips.name}; the switching policy distils one per behaviour (it has {have})")
-        log.info("distilling the switching policy from %d experts of %s", len(found), source)
+        log.info("switching policy: distils %d experts of %s (unless it resumes from a checkpoint)", len(found), source)
         return {0: [found[i] for i in range(len(entries))]}
     if not found:
         raise ConfigError(f"lowlevel.warm_start={source} has no expert for any clip of clips={cfg.clips.name} "
