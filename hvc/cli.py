@@ -27,11 +27,12 @@ def _run(cfg: DictConfig) -> None:
     try:
         validate(cfg)
         run_dir = Path(HydraConfig.get().runtime.output_dir)
-        options = list(HydraConfig.get().overrides.task)  # this job's own: a multirun job's values
+        given = list(HydraConfig.get().overrides.task)  # this job's own: a multirun job's values
+        options = given
         if cfg.get("resume"):  # go on with the run's own options, this command's winning
             run_dir = _run_to_resume(cfg, run_dir)
-            options = merge_overrides(saved_overrides(run_dir), options)
-            cfg = _composed(cfg, options)
+            options = merge_overrides(saved_overrides(run_dir), given)
+            cfg = _composed(cfg, given, options)
         resolve_parallelism(cfg)
     except ConfigError as error:
         print(f"hvc-run: error: {error}", file=sys.stderr)
@@ -74,15 +75,16 @@ def _run_to_resume(cfg: DictConfig, output_dir: Path) -> Path:
     return run_dir
 
 
-def _composed(cfg: DictConfig, options: list[str]) -> DictConfig:
-    """The config for `options` (a resume's: the run's own options restored)."""
-    given = list(HydraConfig.get().overrides.task)
+def _composed(cfg: DictConfig, given: list[str], options: list[str]) -> DictConfig:
+    """The config for `options` (a resume's: the run's own options restored), `cfg` itself
+    when they are the command's own `given` ones (resume=<dir> restored them before Hydra)."""
     if options == given:
         return cfg
     log.info("resuming with the run's own options: %s", " ".join(o for o in options if o not in given))
     cfg = compose(config_name="config", overrides=options)
     validate(cfg)
     return cfg
+
 
 def _dispatch(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.stage == "rollout":

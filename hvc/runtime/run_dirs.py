@@ -12,7 +12,7 @@ from pathlib import Path
 
 import yaml
 
-from hvc.config import ConfigError
+from hvc.config import GROUPS, ConfigError
 
 RUNS_ROOT = Path("outputs") / "runs"
 
@@ -64,8 +64,6 @@ def merge_overrides(saved: list[str], new: list[str]) -> list[str]:
     which win where both set the same key (e.g. a larger total_steps). A new group choice
     drops the saved options inside that group (task=gaps: no task.turn_rate_repeat of
     task=tracking), and a key the run added with `+` keeps being added (`++`)."""
-    from hvc.config import GROUPS
-
     given = {_key(o) for o in new}
     regrouped = tuple(f"{g}." for g in given & set(GROUPS))
     kept = [o for o in saved if _key(o) not in given and _key(o) != "resume" and not _key(o).startswith(regrouped)]
