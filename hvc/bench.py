@@ -169,12 +169,13 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, floa
     from hvc.controllers.base import ControlledEnv
     from hvc.controllers.fragments import FragmentsController
     from hvc.algorithms.hl_learners import vtrace_update
+    from hvc.skills import Skills
     from hvc.runtime.hl_train import Unrolls
 
     torch.set_num_threads(1)
     cfg = compose([f"task={task_name}", "task.layout_pool=1", "task.init_from_clips=false"])
     env = FastEnv.build(_plain(cfg, "task"), _plain(cfg, "body"), _plain(cfg, "render"), seed=0)
-    controlled = ControlledEnv(env, FragmentsController(_bench_library(str(cfg.clips.name)), 3))
+    controlled = ControlledEnv(env, FragmentsController(Skills.from_library(_bench_library(str(cfg.clips.name)), 3)))
     rng = np.random.default_rng(0)
     controlled.reset()
     n, t0 = 0, time.perf_counter()
@@ -222,6 +223,7 @@ def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
 
     from hvc.envs.vector_env import VectorEnv
     from hvc.runtime.env_config import env_dicts
+    from hvc.skills import skills_for_job
 
     cfg = compose(overrides)
     task, body, render = env_dicts(cfg)
@@ -231,7 +233,7 @@ def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
     try:
         for key, n, in_process in [("single", 1, 1)] + [(k, num_envs, k) for k in range(num_envs + 1)]:
             variants[key] = VectorEnv(task, body, render, n, seed=0, controller=controller,
-                                      clip_set=str(cfg.clips.name), in_process=in_process)
+                                      skills=skills_for_job(cfg), in_process=in_process)
         elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
         for envs in variants.values():
             envs.reset()

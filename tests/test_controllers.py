@@ -13,6 +13,7 @@ from hvc.controllers.query import QueryController
 from hvc.envs.fast_env import FastEnv
 from hvc.lowlevel.library import Expert, ExpertLibrary
 from hvc.mocap.reference import Reference
+from hvc.skills import Skills
 
 
 def _reference(n, seed):
@@ -43,7 +44,7 @@ def env():
 
 
 def test_fragments_run_each_expert_from_its_start_for_t_steps(library, env):
-    controller = FragmentsController(library, fragment_len=3)
+    controller = FragmentsController(Skills.from_library(library, 3))
     assert controller.action_space.n == 3 + 2  # ceil(7/3) + ceil(4/3)
     wrapped = ControlledEnv(env, controller)
     obs = wrapped.reset()
@@ -68,11 +69,11 @@ def test_fragments_run_each_expert_from_its_start_for_t_steps(library, env):
 
 @pytest.mark.parametrize("fragment_len,expected", [(1, 11), (2, 6), (10, 2)])
 def test_fragment_count_follows_fragment_len(library, fragment_len, expected):
-    assert FragmentsController(library, fragment_len).action_space.n == expected
+    assert FragmentsController(Skills.from_library(library, fragment_len)).action_space.n == expected
 
 
 def test_query_selects_the_nearest_key(library, env):
-    controller = QueryController(library, fragment_len=3, k_nearest=2)
+    controller = QueryController(Skills.from_library(library, 3, "query"), k_nearest=2)
     assert controller.keys.shape == (5, 36) and controller.action_space.size == 36
     target = controller.keys[2] + 0.01
     nearest = controller.nearest(target)
@@ -91,10 +92,10 @@ def test_end_to_end_passes_the_action_every_step(env):
     np.testing.assert_allclose(env.data.ctrl[env.layout.actuators], env.action_high)  # clipped
 
 
-def test_structured_controllers_say_what_they_need(env, tmp_path):
-    for name in ("steerable", "switching"):
-        with pytest.raises(ControllerUnavailable, match=f"controller={name} needs"):
-            build_controller({"name": name}, env, library=str(tmp_path / "missing.npz"))
+def test_controllers_with_skills_say_what_they_need(env):
+    for name in ("steerable", "switching", "fragments", "query"):
+        with pytest.raises(ControllerUnavailable, match=f"controller={name} needs skills"):
+            build_controller({"name": name}, env, None)
 
 
 def _cyclic_expert(obs_size, n=12, cycle=4):

@@ -122,12 +122,13 @@ def test_controlled_episodes_start_from_poses_of_the_controllers_skills(task_nam
     from hvc.controllers.base import ControlledEnv
     from hvc.controllers.factory import build_controller
     from hvc.runtime.env_config import env_dicts
+    from hvc.skills import skills_for_job
 
-    cfg = compose([f"task={task_name}", "task.layout_pool=1"])
+    cfg = compose([f"task={task_name}", "task.layout_pool=1", "clips=go_to_target"])  # a set with skills
     task, body, render = env_dicts(cfg)
     assert "init_clips" not in task  # the controller, not the mocap file, supplies the poses
     env = FastEnv.build(task, body, render, seed=0, render=False)
-    controller = build_controller(dict(cfg.controller), env, None, "go_to_target")
+    controller = build_controller(dict(cfg.controller), env, skills_for_job(cfg))
     driven = ControlledEnv(env, controller)
     placement = env.layout.logic.placement
     assert len(placement.pose_bank) == sum(e.reference.num_steps for e in controller.library.experts)

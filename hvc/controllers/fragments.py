@@ -10,15 +10,15 @@ import numpy as np
 
 from hvc.controllers.base import ActionSpace
 from hvc.lowlevel.evaluation import policy_observation
-from hvc.mocap.clip_sets import ClipEntry, Fragment, fragments
+from hvc.mocap.clip_sets import Fragment
 
 
 class FragmentsController:
-    def __init__(self, library, fragment_len: int):
-        self.library = library
-        self.fragment_len = int(fragment_len)
-        entries = [ClipEntry(**e.entry) for e in library.experts]
-        self.fragments: list[Fragment] = fragments(entries, self.fragment_len)
+    def __init__(self, skills):
+        """`skills`: the job's hvc.skills.Skills, whose fragments are cut once per job."""
+        self.library = skills.library
+        self.fragment_len = int(skills.fragment_len)
+        self.fragments: list[Fragment] = skills.fragments
         self.action_space = ActionSpace(discrete=True, n=len(self.fragments))
         self.current: Fragment | None = None
         self.index = -1  # the running fragment's index (episode records)

@@ -11,15 +11,12 @@ import numpy as np
 
 from hvc.controllers.base import ActionSpace
 from hvc.controllers.fragments import FragmentsController
-from hvc.mocap.clip_sets import fragment_keys
 
 
 class QueryController(FragmentsController):
-    def __init__(self, library, fragment_len: int, k_nearest: int):
-        super().__init__(library, fragment_len)
-        keys = [fragment_keys(library.experts[c].reference, [f.start], f.length)[0] for c, f in
-                ((f.clip, f) for f in self.fragments)]
-        raw = np.asarray(keys, np.float32)
+    def __init__(self, skills, k_nearest: int):
+        super().__init__(skills)
+        raw = skills.keys
         self.key_mean, self.key_std = raw.mean(0), raw.std(0) + 1e-6
         self.keys = (raw - self.key_mean) / self.key_std  # queries live in this normalised space
         self.k = min(int(k_nearest), len(self.keys))

@@ -44,11 +44,21 @@ def vector_env(cfg: DictConfig, seed: int | None = None):
     seeded `seed` (default cfg.seed), seed + 1, ...; the one place a run's VectorEnv is built.
     Its `controller` is None when the controller cannot be built (the caller decides)."""
     from hvc.envs.vector_env import VectorEnv
+    from hvc.errors import ControllerUnavailable
+    from hvc.skills import skills_for_job
 
     task, body, render = env_dicts(cfg)
-    return VectorEnv(task, body, render, int(cfg.num_envs), seed=int(cfg.seed if seed is None else seed),
-                     controller=_plain(cfg.controller), library=cfg.get("library"),
-                     clip_set=str(cfg.clips.name), in_process=int(cfg.in_process_envs))
+    try:
+        skills = skills_for_job(cfg)
+    except ControllerUnavailable as error:  # the caller decides: rollout drives the body, train stops
+        skills, why_not = None, str(error)
+    else:
+        why_not = None
+    envs = VectorEnv(task, body, render, int(cfg.num_envs), seed=int(cfg.seed if seed is None else seed),
+                     controller=_plain(cfg.controller), skills=skills, in_process=int(cfg.in_process_envs))
+    if why_not:
+        envs.why_no_controller = why_not
+    return envs
 
 
 def env_dicts(cfg: DictConfig, entry=None, tracking: bool = False,

@@ -10,17 +10,15 @@ from pathlib import Path
 import numpy as np
 
 
-def write_fragment_table(path: Path, library, fragment_len: int) -> None:
+def write_fragment_table(path: Path, skills) -> None:
     """fragments.csv: index, clip, clip id, behaviour, start, length: what a fragment index means."""
-    from hvc.mocap.clip_sets import ClipEntry, fragments
-
-    entries = [ClipEntry(**e.entry) for e in library.experts]
+    entries = [e.entry for e in skills.library.experts]
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(("index", "clip", "clip_id", "behaviour", "start", "length"))
-        for i, frag in enumerate(fragments(entries, fragment_len)):
+        for i, frag in enumerate(skills.fragments):
             e = entries[frag.clip]
-            writer.writerow((i, frag.clip, e.id, e.behaviour, frag.start, frag.length))
+            writer.writerow((i, frag.clip, e["id"], e["behaviour"], frag.start, frag.length))
 
 
 class EpisodeRecorder:
@@ -37,12 +35,9 @@ class EpisodeRecorder:
         when the actions are fragment indices."""
         recorder = cls(run_dir / "episodes", int(cfg.record_episodes))
         if recorder.active and cfg.controller.name in ("fragments", "query"):
-            from hvc.controllers.factory import library_path
-            from hvc.lowlevel.library import ExpertLibrary
+            from hvc.skills import skills_for_job
 
-            write_fragment_table(run_dir / "fragments.csv",
-                                 ExpertLibrary.load(library_path(cfg.get("library"), str(cfg.clips.name))),
-                                 int(cfg.fragment_len))
+            write_fragment_table(run_dir / "fragments.csv", skills_for_job(cfg))
         return recorder
 
     @property

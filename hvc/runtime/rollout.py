@@ -43,12 +43,7 @@ def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
         hl_actions = 0
         recorder = EpisodeRecorder(run_dir / "episodes", int(cfg.record_episodes))
         if recorder.active and env.controller in ("fragments", "query"):
-            from hvc.controllers.factory import library_path
-            from hvc.lowlevel.library import ExpertLibrary
-
-            write_fragment_table(run_dir / "fragments.csv",
-                                 ExpertLibrary.load(library_path(cfg.get("library"), str(cfg.clips.name))),
-                                 int(cfg.fragment_len))
+            write_fragment_table(run_dir / "fragments.csv", env.skills)
         try:
             obs = env.reset()
             while steps < cfg.total_steps:

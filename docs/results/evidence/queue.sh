@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Runs the evidence jobs listed in a jobs file ("<run dir> <hvc-run overrides...>" per line),
+# WORKERS at a time. A job whose dir has summary.json is done; one with checkpoint.pt is
+# continued with resume=<dir>; otherwise it starts in <dir>. Each job holds flock on
+# <dir>.lock, so two queues never run the same job (the lock dies with its process).
+#   nohup docs/results/evidence/queue.sh docs/results/evidence/<figure>.jobs > outputs/evidence/<figure>.log 2>&1 &
+set -uo pipefail
+jobs_file=$1
+workers=${WORKERS:-2}
+HVC=${HVC:-.venv/bin/hvc-run}
+
+run_job() {
+  local dir=$1; shift
+  if [[ -f $dir/summary.json ]]; then return 0; fi
+  if [[ -f $dir/checkpoint.pt ]]; then
+    flock -n "$dir.lock" "$HVC" "resume=$dir" "$@"
+  else
+    flock -n "$dir.lock" "$HVC" "hydra.run.dir=$dir" "$@"
+  fi
+  echo "$(date -Is) job $dir exit $?"
+}
+
+worker() {
+  local me=$1 i=0
+  while read -r dir args; do
+    [[ -z $dir || $dir == \#* ]] && continue
+    if (( i++ % workers == me )); then
+      # shellcheck disable=SC2086
+      mkdir -p "$(dirname "$dir")"
+      run_job "$dir" $args >> "$dir.out" 2>&1 < /dev/null || true
+      tail -1 "$dir.out"
+    fi
+  done < "$jobs_file"
+}
+
+for ((w = 0; w < workers; w++)); do worker "$w" & done
+wait

@@ -1,0 +1,90 @@
+"""Each job resolves the skills of its own clip set and controller (hvc.skills)."""
+import json
+
+import pytest
+
+from hvc.config import compose, group_options
+from hvc.errors import ControllerUnavailable
+from hvc.lowlevel.library import SHIPPED_DIR, ExpertLibrary
+from hvc.skills import resolve_skills, skills_for_job
+
+
+@pytest.mark.parametrize("clips,fragments", [("go_to_target", 105), ("go_to_target_x2", 210),
+                                             ("go_to_target_x4", 420)])
+def test_scaling_sets_assemble_from_the_shipped_experts(clips, fragments):
+    skills = resolve_skills(compose([f"clips={clips}"]))
+    assert len(skills.fragments) == fragments
+    shipped = ExpertLibrary.load(SHIPPED_DIR / "experts_go_to_target.npz")
+    # the copies are the shipped experts themselves, under the set's own behaviour names
+    for i, expert in enumerate(skills.library.experts):
+        assert expert.policy is skills.library.experts[i % 4].policy
+        assert expert.reference.num_steps == shipped.experts[i % 4].reference.num_steps
+    assert [e.entry["behaviour"] for e in skills.library.experts[:4]] == ["stand", "run", "left_turn", "right_turn"]
+
+
+def test_a_set_without_experts_names_the_missing_clips_and_the_command():
+    with pytest.raises(ControllerUnavailable) as error:
+        resolve_skills(compose(["task=forage", "controller=fragments"]))
+    message = str(error.value)
+    assert "\n" not in message
+    assert "clips=forage" in message and "CMU_016_24" in message and "CMU_016_25" in message
+    assert "CMU_131_09" not in message  # the stand clip has an expert
+    assert "hvc-run stage=lowlevel clips=forage" in message and "libraries.forage=" in message
+
+
+def test_a_set_assembles_from_a_library_named_for_another_set(tmp_path):
+    """locomotion_8's extra clips, trained elsewhere, join the shipped 4 behaviours."""
+    shipped = ExpertLibrary.load(SHIPPED_DIR / "experts_go_to_target.npz")
+    cfg = compose(["clips=locomotion_8"])
+    from hvc.mocap.clip_sets import entries_of
+
+    extra = entries_of(cfg.clips)[4:]
+    fake = ExpertLibrary([type(shipped.experts[0])(e.as_dict(), shipped.experts[0].policy,
+                                                   shipped.experts[0].reference) for e in extra], {})
+    path = fake.save(tmp_path / "extra.npz")
+    skills = resolve_skills(compose(["clips=locomotion_8", f"libraries.forage={path}"]))
+    assert len(skills.library) == 8
+    assert skills.assembled_from["stand_b (CMU_131_14)"] == "extra.npz"
+    assert skills.assembled_from["stand (CMU_131_09)"] == "experts_go_to_target.npz"
+
+
+def test_a_library_named_for_the_set_wins_over_the_shipped_one(tmp_path):
+    shipped = ExpertLibrary.load(SHIPPED_DIR / "experts_go_to_target.npz")
+    path = shipped.subset([0, 1]).save(tmp_path / "experts_go_to_target.npz")
+    skills = resolve_skills(compose([f"libraries.go_to_target={path}"]))
+    assert len(skills.library) == 2 and skills.source == str(path)
+    # a stage=lowlevel run dir holding one assembled library works as well
+    assert len(resolve_skills(compose([f"libraries.go_to_target={tmp_path}"])).library) == 2
+
+
+def test_steerable_and_switching_load_their_own_policies_never_the_clip_sets():
+    for name in ("steerable", "switching"):
+        skills = resolve_skills(compose([f"controller={name}"]))
+        assert skills.clip_set == name and skills.source == f"shipped experts_{name}.npz"
+        assert skills.fragments == []
+    assert resolve_skills(compose(["controller=end_to_end"])) is None
+
+
+def test_a_missing_named_library_fails_in_one_line(tmp_path):
+    with pytest.raises(ControllerUnavailable, match="does not exist"):
+        resolve_skills(compose([f"libraries.steerable={tmp_path / 'missing.npz'}", "controller=steerable"]))
+
+
+def test_skills_are_resolved_once_per_job(monkeypatch, tmp_path):
+    import hvc.skills as skills_module
+
+    calls = []
+    real = skills_module.resolve_skills
+    monkeypatch.setattr(skills_module, "resolve_skills", lambda cfg: calls.append(1) or real(cfg))
+    cfg = compose(["fragment_len=10"])
+    first = skills_for_job(cfg)
+    assert skills_for_job(compose(["fragment_len=10"])) is first and len(calls) == 1
+    assert len(skills_for_job(compose(["fragment_len=1"])).fragments) == 102 + 108 + 43 + 58  # a new job: its own
+    assert len(calls) == 2
+    first.write(tmp_path)
+    assert json.loads((tmp_path / "skills.json").read_text())["fragments"] == 11 + 11 + 5 + 6
+
+
+def test_every_clip_set_has_a_libraries_key():
+    cfg = compose([])
+    assert set(group_options("clips")) <= set(cfg.libraries)
