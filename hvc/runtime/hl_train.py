@@ -136,13 +136,10 @@ def build_agent(cfg: DictConfig, envs: VectorEnv) -> tuple[AgentSpec, HighLevelA
                      vision="image" in envs.observation_sizes, critic_takes_action=not space.discrete)
     agent = HighLevelAgent(spec)
     if cfg.controller.name == "query":
-        from hvc.controllers.factory import library_path
         from hvc.controllers.query import QueryController
-        from hvc.lowlevel.library import ExpertLibrary
 
-        lib = ExpertLibrary.load(library_path(cfg.get("library"), str(cfg.clips.name)))
         learner = QueryLearner(agent, cfg.algorithm, cfg.controller, space,
-                               QueryController(lib, int(cfg.controller.fragment_len), int(cfg.controller.k_nearest)))
+                               QueryController(envs.skills, int(cfg.controller.k_nearest)))
         learner.rng = np.random.default_rng(int(cfg.seed))
     else:
         learner = None if space.discrete else ContinuousLearner(agent, cfg.algorithm, cfg.controller, space)
