@@ -14,7 +14,7 @@ from typing import Iterable, Sequence
 from omegaconf import DictConfig, OmegaConf
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
-GROUPS = ("body", "task", "controller", "algorithm", "clips", "reward", "render", "lowlevel")
+GROUPS = ("body", "task", "controller", "algorithm", "clips", "reward", "render", "lowlevel", "budget")
 STAGES = ("rollout", "train", "record", "info", "convert", "playback", "openloop", "lowlevel", "evaluate")
 MOCAP_STAGES = ("info", "convert", "playback", "openloop", "lowlevel", "evaluate")
 # Top-level keys that must be positive integers.

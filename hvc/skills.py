@@ -106,6 +106,55 @@ def named_library(cfg: DictConfig, set_name: str) -> str | None:
     return libraries.get(set_name) or cfg.get("library") or None
 
 
+# Sweep keys whose arms may run different skills.
+SKILL_KEYS = ("clips", "task", "controller")
+
+
+def check_sweep_library(argv: Sequence[str]) -> None:
+    """Refuses one `library=` for a sweep whose arms differ in skills, before any job: it
+    would serve every arm (the x1 / x2 / x4 arms would all run the x1 set)."""
+    from hvc.config import ConfigError
+
+    if not {"-m", "--multirun"} & set(argv):
+        return
+    given = dict(a.split("=", 1) for a in argv if "=" in a and not a.startswith("-"))
+    if given.get("library") in (None, "", "null"):
+        return
+    swept = {k for k, v in given.items() if _is_sweep(v)} | set(_file_sweep_params(argv))
+    varying = [k for k in SKILL_KEYS if k in swept]
+    if varying:
+        raise ConfigError(f"library={given['library']} would serve every arm of this sweep, whose arms differ in "
+                          f"{', '.join(varying)}; name a library per clip set instead: libraries.<set>=<file> "
+                          f"(e.g. libraries.go_to_target_x2=<file>), or leave it out to use the shipped or "
+                          f"assembled skills of each set")
+
+
+def _is_sweep(value: str) -> bool:
+    return "," in value or value.startswith(("range(", "choice(", "glob("))
+
+
+def _file_sweep_params(argv: Sequence[str]) -> dict:
+    """hydra.sweeper.params of the primary config the command names (a sweeps/ file)."""
+    import yaml
+
+    def option(long: str, short: str) -> str | None:
+        for i, a in enumerate(argv):
+            if a in (long, short) and i + 1 < len(argv):
+                return argv[i + 1]
+            if a.startswith(f"{long}="):
+                return a.split("=", 1)[1]
+        return None
+
+    config_dir, name = option("--config-dir", "-cd"), option("--config-name", "-cn")
+    if not config_dir or not name:
+        return {}
+    path = Path(config_dir) / f"{name.removesuffix('.yaml')}.yaml"
+    if not path.is_file():
+        return {}
+    data = yaml.safe_load(path.read_text()) or {}
+    return ((data.get("hydra") or {}).get("sweeper") or {}).get("params") or {}
+
+
 _CACHE: dict[str, Skills] = {}
 
 

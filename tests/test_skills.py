@@ -88,3 +88,17 @@ def test_skills_are_resolved_once_per_job(monkeypatch, tmp_path):
 def test_every_clip_set_has_a_libraries_key():
     cfg = compose([])
     assert set(group_options("clips")) <= set(cfg.libraries)
+
+
+def test_one_library_for_a_sweep_over_clip_sets_is_refused_before_any_job(tmp_path):
+    from hvc.config import ConfigError
+    from hvc.skills import check_sweep_library
+
+    sweep_file = ["--config-dir", "sweeps", "--config-name", "fragment_count", "-m"]
+    with pytest.raises(ConfigError, match="differ in clips.*libraries.<set>=<file>"):
+        check_sweep_library([*sweep_file, "library=x.npz"])
+    with pytest.raises(ConfigError, match="differ in controller"):
+        check_sweep_library(["-m", "controller=fragments,steerable", "library=x.npz"])
+    check_sweep_library(["-m", "fragment_len=1,3,10", "library=x.npz"])  # one set: one library serves
+    check_sweep_library([*sweep_file, "libraries.go_to_target_x2=x.npz"])
+    check_sweep_library(["controller=steerable", "library=x.npz"])  # not a sweep
