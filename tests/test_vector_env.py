@@ -28,13 +28,17 @@ def test_envs_stepped_in_the_main_process_match_worker_envs(controller):
     from omegaconf import OmegaConf
 
     from hvc.config import compose
+    from hvc.skills import resolve_skills
 
     task, body, render = plain_cfg("task=go_to_target")
-    ctrl = OmegaConf.to_container(compose(["controller=fragments"]).controller, resolve=True) if controller else None
+    cfg = compose(["controller=fragments"])
+    ctrl = OmegaConf.to_container(cfg.controller, resolve=True) if controller else None
+    skills = resolve_skills(cfg) if controller else None
     runs = []
     for in_process in (0, 2):
         rng = np.random.default_rng(1)
-        with VectorEnv(task, body, render, num_envs=3, seed=7, controller=ctrl, in_process=in_process) as env:
+        with VectorEnv(task, body, render, num_envs=3, seed=7, controller=ctrl, skills=skills,
+                       in_process=in_process) as env:
             assert len(env._procs) == 3 - in_process
             obs, steps = env.reset(), []
             for _ in range(40):
