@@ -89,20 +89,11 @@ def test_continuous_policy_stays_steerable_under_a_critic_that_prefers_a_bound()
     learner = ContinuousLearner(agent, OmegaConf.create({"target_update_period": 10**6}),
                                 OmegaConf.create({"sigma_clip": [0.1, 1.0], "entropy_cost": 0.0}),
                                 SimpleNamespace(low=-1.0, high=1.0))
-    agent.value = torch.nn.Linear(16 + 2, 1)  # Q(h, a) = 5 * sum(a): always "more action"
-    with torch.no_grad():
-        agent.value.weight.zero_()
-        agent.value.weight[0, -2:] = 5.0
-        agent.value.bias.zero_()
+    learner.target.value = _linear_critic(16, 2, 5.0)  # Q_target(h, a) = 5 * sum(a): always "more action"
+    batch, T, B = _policy_batch()
     optimizer = torch.optim.Adam(agent.parameters(), lr=1e-2)
-    T, B = 3, 8
-    batch = {"proprio": torch.randn(T + 1, B, 3), "task": torch.zeros(T + 1, B, 0),
-             "prev_reward": torch.zeros(T + 1, B), "prev_action": torch.zeros(T + 1, B, 2),
-             "first": torch.zeros(T + 1, B), "new_action": torch.ones(T, B)}
     for _ in range(300):
-        out, h, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
-                          agent.initial_state(B), done=batch["first"])
-        learner.step(optimizer, torch.zeros(()), out, h, batch, torch.zeros(T, B))
+        _svg0_policy_step(learner, optimizer, batch)
     out, _, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
                       agent.initial_state(B), done=batch["first"])
     mean, _ = agent.gaussian(out, -1.0, 1.0)
@@ -112,6 +103,59 @@ def test_continuous_policy_stays_steerable_under_a_critic_that_prefers_a_bound()
     _, sigma = agent.gaussian(torch.cat([torch.zeros(1), sigma_raw]), -1.0, 1.0)
     sigma.sum().backward()
     assert np.isclose(float(sigma.detach()), 0.1) and sigma_raw.grad.abs() > 0
+
+
+def _linear_critic(hidden: int, actions: int, slope: float) -> torch.nn.Linear:
+    """Q(h, a) = slope * sum(a)."""
+    critic = torch.nn.Linear(hidden + actions, 1).requires_grad_(False)
+    critic.weight.zero_()
+    critic.weight[0, -actions:] = slope
+    critic.bias.zero_()
+    return critic
+
+
+def _policy_batch(T: int = 3, B: int = 8):
+    batch = {"proprio": torch.randn(T + 1, B, 3), "task": torch.zeros(T + 1, B, 0),
+             "prev_reward": torch.zeros(T + 1, B), "prev_action": torch.zeros(T + 1, B, 2),
+             "first": torch.zeros(T + 1, B), "new_action": torch.ones(T, B)}
+    return batch, T, B
+
+
+def _svg0_policy_step(learner, optimizer, batch) -> None:
+    """One step of the policy loss alone (no critic loss)."""
+    B = batch["proprio"].shape[1]
+    args = (batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"])
+    out, _, _ = learner.agent(*args, learner.agent.initial_state(B), done=batch["first"])
+    with torch.no_grad():
+        t_out, t_h, _ = learner.target(*args, learner.target.initial_state(B), done=batch["first"])
+    learner.step(optimizer, torch.zeros(()), out, batch, torch.zeros(batch["new_action"].shape), t_out, t_h)
+
+
+def test_high_level_svg0_follows_q_target_not_the_online_q():
+    """The paper's SVG(0) maximises Q_target(s, a) at both levels: with an online Q that wants
+    the opposite, the policy still moves the way the target's Q wants."""
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from hvc.algorithms.hl_learners import ContinuousLearner
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
+                                     value_mlp=(16, 1), critic_takes_action=True))
+    learner = ContinuousLearner(agent, OmegaConf.create({"target_update_period": 10**6}),
+                                OmegaConf.create({"sigma_clip": [0.1, 1.0], "entropy_cost": 0.0}),
+                                SimpleNamespace(low=-1.0, high=1.0))
+    agent.value = _linear_critic(16, 2, +5.0)
+    learner.target.value = _linear_critic(16, 2, -5.0)
+    batch, _, B = _policy_batch()
+    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-2)
+    for _ in range(100):
+        _svg0_policy_step(learner, optimizer, batch)
+    out, _, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
+                      agent.initial_state(B), done=batch["first"])
+    mean, _ = agent.gaussian(out, -1.0, 1.0)
+    assert mean.max() < -0.5
 
 
 def test_running_normalizer_matches_the_statistics_of_all_inputs_seen():

@@ -60,9 +60,10 @@ class ContinuousLearner:
     The policy head gives a Gaussian (tanh-bounded mean, sigma clipped); sampled actions are
     clipped to the controller's range. Q(h, a) is an MLP on the LSTM core's output,
     regressed on Retrace targets from a target copy of the whole agent (refreshed every
-    `target_update_period` learner steps); the policy maximises Q(h, a(xi)) through the
-    reparameterised sample (Q's weights held, so only the policy moves) at steps where a
-    new action was taken, with an entropy bonus.
+    `target_update_period` learner steps); the policy maximises Q_target(h, a(xi)) through
+    the reparameterised sample (the paper's SVG(0), as at the low level: the target agent's
+    Q on its own features, so only the policy moves) at steps where a new action was taken,
+    with an entropy bonus.
     """
 
     def __init__(self, agent: HighLevelAgent, algorithm, controller, space):
@@ -123,21 +124,20 @@ class ContinuousLearner:
             targets = retrace_targets(b["reward"], b["discount"], q_taken, v_next, traces, gamma)
         q = self.agent.values(h[:-1], self.clip(b["action"]))
         critic_loss = 0.5 * ((q - targets) ** 2).mean()
-        return self.step(optimizer, critic_loss, out, h, b, q, t_out)
+        return self.step(optimizer, critic_loss, out, b, q, t_out, t_h)
 
-    def step(self, optimizer, critic_loss: torch.Tensor, out: torch.Tensor, h: torch.Tensor, b: dict,
-             q: torch.Tensor, target_out: torch.Tensor | None = None) -> dict[str, float]:
-        """Adds the SVG(0) policy loss to `critic_loss` (with eta KL(pi || pi_target) on the target
-        agent's policy when `target_out` is given, as at the low level), takes one optimiser step
-        and refreshes the target agent on schedule."""
+    def step(self, optimizer, critic_loss: torch.Tensor, out: torch.Tensor, b: dict, q: torch.Tensor,
+             target_out: torch.Tensor, target_h: torch.Tensor) -> dict[str, float]:
+        """Adds the SVG(0) policy loss through Q_target to `critic_loss` (with eta KL(pi || pi_target)
+        on the target agent's policy, as at the low level), takes one optimiser step and refreshes
+        the target agent on schedule."""
         dist = self.distribution(self.agent, out[:-1])
         # Q is only ever trained on actions inside the range (actors clip them): a sample outside
         # it is clipped too, so Q's extrapolation cannot drag the mean past the bounds
         action = self.clip(dist.rsample())
-        # SVG(0): the gradient of Q w.r.t. the action only; Q's weights and the state features are held
-        frozen = {k: v.detach() for k, v in self.agent.value.named_parameters()}
-        q_pi = torch.func.functional_call(self.agent.value, frozen,
-                                          (torch.cat([h[:-1].detach(), action], -1),)).squeeze(-1)
+        # SVG(0) through Q_target: the target agent holds no gradients, so they reach the policy
+        # only through the action
+        q_pi = self.target.values(target_h[:-1], action)
         weight = b["new_action"] / b["new_action"].sum().clamp(min=1.0)
         entropy = dist.entropy().sum(-1)
         # keeps the mean's tanh out of saturation, where its gradient vanishes and a policy
@@ -145,7 +145,7 @@ class ContinuousLearner:
         mean_raw = out[:-1].chunk(2, -1)[0]
         saturation = (torch.relu(mean_raw.abs() - MEAN_RAW_LIMIT) ** 2).sum(-1)
         kl = torch.zeros_like(entropy)
-        if target_out is not None and self.kl_cost > 0:
+        if self.kl_cost > 0:
             kl = torch.distributions.kl_divergence(dist, self.distribution(self.target, target_out[:-1])).sum(-1)
         policy_loss = -((q_pi + self.entropy_cost * entropy - saturation - self.kl_cost * kl) * weight).sum()
         clipped_step(optimizer, critic_loss + policy_loss, self.agent.parameters())
@@ -200,4 +200,4 @@ class QueryLearner(ContinuousLearner):
         q_query = self.agent.values(h[:-1], b["query"])
         q_selected = self.agent.values(h[:-1], b["action"])
         critic_loss = 0.5 * (((q_query - targets) ** 2).mean() + ((q_selected - targets) ** 2).mean())
-        return self.step(optimizer, critic_loss, out, h, b, q_selected, t_out)
+        return self.step(optimizer, critic_loss, out, b, q_selected, t_out, t_h)
