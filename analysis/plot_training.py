@@ -1,5 +1,6 @@
-"""Learning curves of high-level runs: episode return against the transitions the learner
-processed (the paper's x-axis) and against env steps, with the random policy's return.
+"""Learning curves of single high-level runs (one line each, from run dirs or metrics files):
+episode return against the transitions the learner processed (the paper's x-axis) and
+against env steps, with the random policy's return. For means over seeds, plot_sweep.py.
 
     python analysis/plot_training.py out.png outputs/<run dir or metrics.csv[.gz]> [...]
 """
@@ -14,28 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-
-def episode_returns(metrics: pd.DataFrame) -> pd.DataFrame:
-    """Per log row: env_steps, learner_steps, the mean return of the episodes that ended since
-    the previous row and how many they were (`n`). A resumed run logs again from its last
-    checkpoint: the rows it superseded are dropped, so each episode counts once."""
-    m = metrics[metrics.key.isin(["episodes", "episode_return"])].reset_index(drop=True)
-    row = (m[["env_steps", "learner_steps", "wall_time"]].diff().abs().sum(axis=1) != 0).cumsum()
-    rows = m.pivot_table(index=row, columns="key", values="value", sort=True)
-    rows[["env_steps", "learner_steps"]] = m.groupby(row)[["env_steps", "learner_steps"]].first()
-    later_min = rows.env_steps.astype(float)[::-1].cummin()[::-1].shift(-1, fill_value=float("inf"))
-    rows = rows[rows.env_steps < later_min]  # keep only the last timeline after each resume
-    rows["n"] = rows["episodes"].ffill().diff().fillna(rows["episodes"])
-    rows = rows.dropna(subset=["episode_return"])
-    return rows[["env_steps", "learner_steps", "episode_return", "n"]].rename(columns={"episode_return": "value"})
-
-
-def mean_return(metrics: pd.DataFrame, lo: float = 0, hi: float = float("inf")) -> float:
-    """The mean return per episode over episodes ending in [lo, hi) env steps. A plain mean of
-    the rows would favour long episodes: they end in rows of their own."""
-    r = episode_returns(metrics)
-    r = r[(r.env_steps >= lo) & (r.env_steps < hi)]
-    return float((r.value * r.n).sum() / r.n.sum())
+from hvc.analysis.returns import episode_returns  # noqa: E402
 
 
 def plot(out: Path, run_dirs: list[Path], points: int = 60) -> Path:

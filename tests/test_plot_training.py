@@ -6,7 +6,8 @@ import pandas as pd
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
-from plot_training import mean_return, plot  # noqa: E402
+from hvc.analysis import mean_return  # noqa: E402
+from plot_training import plot  # noqa: E402
 
 
 def _metrics():

@@ -1,0 +1,53 @@
+"""Draw a sweep: learning curves (mean over seeds +- standard error) per arm, one panel per
+facet, and print each arm's final IQM with its bootstrap CI and how many runs finished.
+
+    python analysis/plot_sweep.py <sweep dir or run dirs...> --by fragment_len -o fig.png
+    python analysis/plot_sweep.py outputs/sweeps/core_tasks/<time> --by controller --facet task -o fig6.png
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+from hvc.analysis import curves, final_scores, iqm_table, load_runs  # noqa: E402
+from hvc.analysis.plots import plot_curves  # noqa: E402
+from hvc.analysis.runs import STATUSES  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("dirs", nargs="+", type=Path, help="sweep dirs, exported figure dirs or run dirs")
+    parser.add_argument("--by", default="", help="comma-separated keys, one line per arm (e.g. controller)")
+    parser.add_argument("--facet", default=None, help="one panel per value of this key (e.g. task)")
+    parser.add_argument("--x", default="learner_steps", choices=["learner_steps", "env_steps"])
+    parser.add_argument("--points", type=int, default=100, help="grid points per curve")
+    parser.add_argument("--partial", action="store_true",
+                        help="draw curve points that only some seeds reached (n_seeds marks them)")
+    parser.add_argument("-o", "--out", type=Path, default=Path("sweep.png"))
+    args = parser.parse_args(argv)
+    by = [k for k in args.by.split(",") if k]
+    keys = by + ([args.facet] if args.facet else [])
+    frame = load_runs(args.dirs, keys=["episodes", "episode_return", "random_return"])
+    missing = [k for k in keys if k not in frame.columns]
+    if missing:
+        parser.error(f"no option {', '.join(missing)} in these runs; they have: {', '.join(frame.attrs['factors'])}")
+    try:
+        lines = curves(frame, keys, x=args.x, points=args.points, complete=not args.partial)
+        scores = final_scores(frame)
+        table = iqm_table(scores, keys, statuses=STATUSES[:3] if args.partial else ("finished",))
+    except ValueError as error:
+        parser.error(str(error))
+    fig = plot_curves(lines, by, args.facet, x=args.x, scores=scores, title=", ".join(map(str, args.dirs)))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=110)
+    print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    print(args.out)
+    return args.out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,88 @@
+"""The figures' plots: curves with standard-error bands per arm, one panel per facet, and
+final IQM with its confidence interval per arm; legends outside the axes, so that no
+curve hides under one."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+X_LABELS = {"learner_steps": "transitions processed by the learner", "env_steps": "env steps"}
+
+
+def _key(group) -> tuple:
+    """A groupby key as a tuple, whether pandas gave a scalar or a 1-tuple."""
+    return group if isinstance(group, tuple) else (group,)
+
+
+def _label(keys: Sequence[str], values) -> str:
+    values = _key(values)
+    return ", ".join(f"{k}={v}" if k in ("fragment_len", "seed") or not isinstance(v, str) else str(v)
+                     for k, v in zip(keys, values)) or "all runs"
+
+
+def _panels(facet: str | None, frame: pd.DataFrame, width: float = 4.2, height: float = 3.4):
+    names = list(pd.unique(frame[facet])) if facet else [None]
+    cols = min(len(names), 3)
+    rows = int(np.ceil(len(names) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(width * cols + 2.2, height * rows), squeeze=False,
+                             layout="constrained")
+    for ax in axes.flat[len(names):]:
+        ax.set_visible(False)
+    return fig, names, list(axes.flat)
+
+
+def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None = None,
+                x: str = "learner_steps", scores: pd.DataFrame | None = None, title: str | None = None):
+    """One line per arm of `by` (mean over seeds; band: +- one standard error) in one panel
+    per value of `facet`; the legend says how many seeds each arm has. A dashed line marks
+    the random policy's return where `scores` (final_scores) gives it."""
+    by = [b for b in by if b != facet]
+    fig, names, axes = _panels(facet, curves)
+    arms = [_key(a) for a in curves.groupby(by, sort=True).groups] if by else [()]
+    colours = {arm: f"C{i % 10}" for i, arm in enumerate(arms)}
+    for name, ax in zip(names, axes):
+        panel = curves[curves[facet] == name] if facet else curves
+        for arm, c in (panel.groupby(by, sort=True) if by else [((), panel)]):
+            arm = _key(arm) if by else ()
+            colour = colours[arm]
+            label = f"{_label(by, arm)} ({c.n_runs.iloc[0]} seeds)"
+            ax.plot(c[x], c["mean"], color=colour, label=label)
+            ax.fill_between(c[x], c["mean"] - c.se.fillna(0), c["mean"] + c.se.fillna(0), color=colour, alpha=0.25)
+        if scores is not None:
+            random = scores[scores[facet] == name].random if facet else scores.random
+            if random.notna().any():
+                ax.axhline(random.mean(), color="grey", ls="--", lw=1, label="random policy")
+        ax.set_title(f"{facet}={name}" if facet else (title or ""))
+        ax.set_xlabel(X_LABELS[x])
+        ax.set_ylabel("return per episode")
+        ax.grid(alpha=0.3)
+    handles = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label, handle)
+    fig.legend(list(handles.values()), list(handles), loc="outside right upper", fontsize=8)
+    if title and facet:
+        fig.suptitle(title)
+    return fig
+
+
+def plot_final(table: pd.DataFrame, by: Sequence[str], facet: str | None = None, title: str | None = None):
+    """Per arm: the IQM of final returns with its 95% bootstrap CI, one panel per facet."""
+    by = [b for b in by if b != facet]
+    fig, names, axes = _panels(facet, table, width=max(3.0, 0.7 * len(table) + 1.5), height=3.2)
+    for name, ax in zip(names, axes):
+        panel = table[table[facet] == name] if facet else table
+        labels = [_label(by, tuple(r[b] for b in by)) for _, r in panel.iterrows()]
+        pos = np.arange(len(panel))
+        ax.errorbar(pos, panel.iqm, yerr=[panel.iqm - panel.ci_low, panel.ci_high - panel.iqm],
+                    fmt="o", capsize=4)
+        for p, (_, r) in zip(pos, panel.iterrows()):
+            ax.annotate(f"n={r.n_runs}", (p, r.iqm), textcoords="offset points", xytext=(6, 0), fontsize=7)
+        ax.set_xticks(pos, labels, rotation=30, ha="right")
+        ax.set_ylabel("final return (IQM, 95% CI)")
+        ax.set_title(f"{facet}={name}" if facet else (title or ""))
+        ax.grid(alpha=0.3, axis="y")
+    return fig

@@ -1,0 +1,132 @@
+"""Run dirs (a sweep dir, an exported figure dir, or single runs) into one tidy DataFrame:
+one row per metrics row, with the run, its status and its options as columns.
+
+A run's options are the `key=value` options it ran with (overrides.yaml), plus the core
+choices its resolved config holds whether or not they were given (controller, task, clips,
+body, seed, fragment_len), so that runs of different sweeps line up.
+"""
+from __future__ import annotations
+
+import fcntl
+from pathlib import Path
+from typing import Iterable
+
+import pandas as pd
+import yaml
+
+METRICS_FILES = ("metrics.csv", "metrics.csv.gz")
+# From the resolved config: the choices a figure is drawn over, given or not.
+CORE = {"controller": ("controller", "name"), "task": ("task", "name"), "clips": ("clips", "name"),
+        "body": ("body", "name"), "seed": ("seed",), "fragment_len": ("fragment_len",)}
+# Options that say how a run was executed, not what was run: never a factor of a figure.
+EXECUTION = {"stage", "num_envs", "in_process_envs", "torch_threads", "resume", "total_steps", "budget",
+             "log_every", "video", "record_episodes"}
+STATUSES = ("finished", "running", "stopped", "failed")
+
+
+def find_runs(paths: Iterable[str | Path]) -> list[Path]:
+    """The run dirs at or under `paths`: dirs holding metrics or a failure record, outside
+    the experts/ dirs of low-level runs."""
+    found: set[Path] = set()
+    for path in map(Path, paths):
+        if not path.exists():
+            raise FileNotFoundError(f"no run or sweep dir at {path}")
+        for name in (*METRICS_FILES, "failed.json"):
+            found |= {p.parent for p in ([path / name] if (path / name).is_file() else path.rglob(name))}
+    return sorted(p for p in found if "experts" not in p.parts)
+
+
+def run_status(run: Path) -> str:
+    """finished (summary.json), failed (failed.json), running (another process holds the run
+    dir's lock) or stopped (ended without finishing: killed, out of time; resumable)."""
+    if (run / "summary.json").is_file():
+        return "finished"
+    if (run / "failed.json").is_file():
+        return "failed"
+    lock = run / ".lock"
+    if lock.is_file():
+        with open(lock) as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return "running"
+    return "stopped"
+
+
+def run_options(run: Path) -> dict:
+    """The options a run ran with (see the module docstring); values parsed as YAML."""
+    options = {}
+    config = run / "config_resolved.yaml"
+    if config.is_file():
+        cfg = yaml.safe_load(config.read_text()) or {}
+        for key, where in CORE.items():
+            node = cfg
+            for part in where:
+                node = node.get(part) if isinstance(node, dict) else None
+            if node is not None:
+                options[key] = node
+    overrides = run / "overrides.yaml"
+    given = yaml.safe_load(overrides.read_text()) if overrides.is_file() else []
+    for option in given or []:
+        key, _, value = option.lstrip("+~").partition("=")
+        if not key.startswith("hydra.") and key not in ("controller", "task", "clips", "body"):
+            options[key] = yaml.safe_load(value) if value else None
+    return options
+
+
+def read_metrics(run: Path) -> pd.DataFrame:
+    """The run's metrics rows, without the rows a resume superseded (see `last_timeline`)."""
+    for name in METRICS_FILES:
+        if (run / name).is_file():
+            return last_timeline(pd.read_csv(run / name))
+    return pd.DataFrame(columns=["env_steps", "learner_steps", "wall_time", "key", "value"])
+
+
+def last_timeline(metrics: pd.DataFrame) -> pd.DataFrame:
+    """A run resumed from a checkpoint logs again from the checkpoint's step: the rows it
+    superseded (logged at or after a step some later row went back to) are dropped, so each
+    episode counts once and env steps increase."""
+    if metrics.empty:
+        return metrics
+    event = (metrics[["env_steps", "learner_steps", "wall_time"]].diff().abs().sum(axis=1) != 0).cumsum()
+    steps = metrics.groupby(event).env_steps.first().astype(float)
+    later_min = steps[::-1].cummin()[::-1].shift(-1, fill_value=float("inf"))
+    keep = steps.index[steps < later_min]
+    return metrics[event.isin(keep)].reset_index(drop=True)
+
+
+def load_runs(paths: Iterable[str | Path], keys: Iterable[str] | None = None) -> pd.DataFrame:
+    """One tidy frame of the runs at or under `paths`: columns `run`, `status`, one per option
+    (NaN where a run lacks it), then env_steps, learner_steps, wall_time, key, value (`keys`:
+    only those metrics). A run without metrics rows (failed before any) keeps one row with
+    NaN metrics, so it shows in the frame. `frame.attrs["factors"]` lists the options whose
+    values differ between the runs (the swept keys), execution options left out."""
+    frames, options = [], {}
+    for run in find_runs(paths):
+        metrics = read_metrics(run)
+        if keys is not None:
+            metrics = metrics[metrics.key.isin(list(keys))]
+        if metrics.empty:
+            metrics = pd.DataFrame({"key": [None]})
+        options[str(run)] = run_options(run)
+        metrics.insert(0, "status", run_status(run))
+        metrics.insert(0, "run", str(run))
+        frames.append(metrics)
+    if not frames:
+        raise FileNotFoundError(f"no runs under {', '.join(map(str, paths))}")
+    table = pd.DataFrame.from_dict(options, orient="index")
+    frame = pd.concat(frames, ignore_index=True)
+    frame = frame.join(table, on="run")
+    columns = ["run", "status", *table.columns, "env_steps", "learner_steps", "wall_time", "key", "value"]
+    frame = frame[[c for c in columns if c in frame.columns]]
+    frame.attrs["factors"] = [c for c in table.columns
+                              if c not in EXECUTION and table[c].dropna().astype(str).nunique() > 1]
+    return frame
+
+
+def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
+    """One row per run: its status, options and how far it got (env steps)."""
+    option_columns = [c for c in frame.columns if c not in ("env_steps", "learner_steps", "wall_time", "key", "value")]
+    table = frame.groupby("run", sort=True)[option_columns[1:]].first()
+    table["env_steps"] = frame.groupby("run").env_steps.max()
+    return table

@@ -1,0 +1,146 @@
+"""Aggregation over seeds on hand-made run dirs with known numbers: means, standard errors,
+IQM, unequal lengths, a failed job, a missing seed, resumed runs, and the one command."""
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from hvc.analysis import curves, final_scores, iqm_table, load_runs
+from hvc.analysis.runs import run_status
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
+
+
+def make_run(root: Path, name: str, options: dict, ret, steps: int = 1000, every: int = 10,
+             status: str = "finished", random: float = 0.5) -> Path:
+    """A run dir as hvc-run writes it: overrides.yaml, config_resolved.yaml, metrics.csv
+    (one episode ending every `every` env steps with return `ret(env_steps)`), summary.json
+    when finished, failed.json when failed."""
+    run = root / name
+    run.mkdir(parents=True)
+    (run / "overrides.yaml").write_text(yaml.safe_dump([f"{k}={v}" for k, v in options.items()]))
+    (run / "config_resolved.yaml").write_text(yaml.safe_dump(
+        {"controller": {"name": options.get("controller", "fragments")}, "task": {"name": "go_to_target"},
+         "seed": options.get("seed", 0), "fragment_len": 3}))
+    rows = [(0, 0, 0.0, "random_return", random)]
+    for i, t in enumerate(range(every, steps + 1, every)):
+        rows += [(t, 4 * t, float(t), "episodes", i + 1), (t, 4 * t, float(t), "episode_return", ret(t)),
+                 (t, 4 * t, float(t), "loss", 7.0)]
+    pd.DataFrame(rows, columns=["env_steps", "learner_steps", "wall_time", "key", "value"]).to_csv(
+        run / "metrics.csv", index=False)
+    if status == "finished":
+        (run / "summary.json").write_text(json.dumps({"env_steps": steps}))
+    if status == "failed":
+        (run / "failed.json").write_text(json.dumps({"error": "bad value", "kind": "error"}))
+    return run
+
+
+@pytest.fixture
+def sweep(tmp_path):
+    """Arm fragment_len=1: seeds return 1, 2, 3 throughout; arm 3: seeds return 10 and 20,
+    seed 1 stopped at half the budget; seed 2 of arm 3 failed before any episode."""
+    for seed, value in enumerate((1.0, 2.0, 3.0)):
+        make_run(tmp_path, f"fl1_s{seed}", {"fragment_len": 1, "seed": seed}, lambda t, v=value: v)
+    make_run(tmp_path, "fl3_s0", {"fragment_len": 3, "seed": 0}, lambda t: 10.0)
+    make_run(tmp_path, "fl3_s1", {"fragment_len": 3, "seed": 1}, lambda t: 20.0, steps=500, status="stopped")
+    failed = tmp_path / "fl3_s2"
+    failed.mkdir()
+    (failed / "overrides.yaml").write_text(yaml.safe_dump(["fragment_len=3", "seed=2"]))
+    (failed / "failed.json").write_text(json.dumps({"error": "no skills", "kind": "error"}))
+    return tmp_path
+
+
+def test_load_runs_gives_each_run_its_swept_values_and_status(sweep):
+    frame = load_runs([sweep])
+    runs = frame.groupby("run").first()
+    assert sorted(frame.attrs["factors"]) == ["fragment_len", "seed"]
+    assert runs.loc[str(sweep / "fl1_s2"), "fragment_len"] == 1 and runs.loc[str(sweep / "fl1_s2"), "seed"] == 2
+    assert runs.status.value_counts().to_dict() == {"finished": 4, "stopped": 1, "failed": 1}
+    assert runs.loc[str(sweep / "fl3_s2"), "status"] == "failed"   # shows, with no metrics rows
+    assert set(frame.key.dropna()) == {"random_return", "episodes", "episode_return", "loss"}
+
+
+def test_curves_average_seeds_with_standard_errors(sweep):
+    c = curves(load_runs([sweep]), ["fragment_len"], x="env_steps", points=10)
+    one = c[c.fragment_len == 1]
+    assert len(one) == 10 and (one.n_seeds == 3).all()
+    np.testing.assert_allclose(one["mean"], 2.0)
+    np.testing.assert_allclose(one.se, 1 / math.sqrt(3))          # std (ddof 1) of 1, 2, 3 over sqrt(3)
+    assert one.env_steps.max() == 1000
+
+
+def test_a_shorter_seed_is_never_averaged_silently(sweep):
+    frame = load_runs([sweep])
+    three = curves(frame, ["fragment_len"], x="env_steps", points=10).query("fragment_len == 3")
+    assert (three.n_runs == 2).all() and (three.n_seeds == 2).all()   # the failed seed is not a run here
+    assert three.env_steps.max() == 500                                # where both seeds reach
+    np.testing.assert_allclose(three["mean"], 15.0)
+    partial = curves(frame, ["fragment_len"], x="env_steps", points=10, complete=False).query("fragment_len == 3")
+    late = partial[partial.env_steps > 500]
+    assert (late.n_seeds == 1).all() and late.se.isna().all()
+    np.testing.assert_allclose(late["mean"], 10.0)
+
+
+def test_curves_refuse_to_average_arms_that_differ_in_more_than_the_seed(sweep):
+    with pytest.raises(ValueError, match="fragment_len"):
+        curves(load_runs([sweep]), [])
+
+
+def test_final_iqm_with_bootstrap_interval_counts_statuses(sweep, tmp_path):
+    make_run(sweep, "fl1_s3", {"fragment_len": 1, "seed": 3}, lambda t: 100.0)   # an outlier seed
+    scores = final_scores(load_runs([sweep]))
+    table = iqm_table(scores, ["fragment_len"]).set_index("fragment_len")
+    assert table.loc[1, "iqm"] == pytest.approx(2.5)          # middle half of 1, 2, 3, 100
+    assert table.loc[1, "ci_low"] <= 2.5 <= table.loc[1, "ci_high"] and table.loc[1, "ci_high"] <= 100
+    assert table.loc[1, "random"] == pytest.approx(0.5)
+    three = table.loc[3]
+    assert (three.n_runs, three.n_finished, three.n_stopped, three.n_failed) == (1, 1, 1, 1)
+    assert three.iqm == pytest.approx(10.0)                   # the stopped and failed seeds are not zeros
+
+
+def test_final_score_is_the_mean_per_episode_over_the_last_tenth(tmp_path):
+    make_run(tmp_path, "r", {"seed": 0}, lambda t: 0.0 if t <= 900 else t / 10.0)
+    score = final_scores(load_runs([tmp_path])).score.iloc[0]
+    assert score == pytest.approx(np.mean([t / 10.0 for t in range(910, 1001, 10)]))
+
+
+def test_a_resumed_run_is_read_from_its_last_timeline(tmp_path):
+    run = make_run(tmp_path, "r", {"seed": 0}, lambda t: 1.0, steps=100)
+    later = pd.DataFrame([(t, t, 1000.0 + t, k, v) for t in (60, 70, 80, 90, 100)
+                          for k, v in (("episodes", t / 10 + 1), ("episode_return", 5.0))],
+                         columns=["env_steps", "learner_steps", "wall_time", "key", "value"])
+    later.to_csv(run / "metrics.csv", mode="a", header=False, index=False)   # resumed at 50
+    frame = load_runs([tmp_path], keys=["episodes", "episode_return"])
+    assert frame.env_steps.is_monotonic_increasing
+    assert (frame[frame.env_steps > 50].value[frame.key == "episode_return"] == 5.0).all()
+
+
+def test_a_locked_run_dir_is_running(tmp_path):
+    import fcntl
+
+    run = make_run(tmp_path, "r", {"seed": 0}, lambda t: 1.0, status="stopped")
+    assert run_status(run) == "stopped"
+    with open(run / ".lock", "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        assert run_status(run) == "running"
+
+
+def test_plot_sweep_draws_one_curve_per_arm_with_bands(sweep, tmp_path, capsys):
+    import matplotlib.pyplot as plt
+    import plot_sweep
+
+    out = plot_sweep.main([str(sweep), "--by", "fragment_len", "-o", str(tmp_path / "fig.png")])
+    assert out.stat().st_size > 5000
+    ax = plt.gcf().axes[0]
+    labels = [line.get_label() for line in ax.get_lines()]
+    assert labels == ["fragment_len=1 (3 seeds)", "fragment_len=3 (2 seeds)", "random policy"]
+    assert len(ax.collections) == 2                                # one standard-error band per arm
+    table = capsys.readouterr().out
+    assert "n_failed" in table and "iqm" in table
+    with pytest.raises(SystemExit):
+        plot_sweep.main([str(sweep), "--by", "controler", "-o", str(tmp_path / "x.png")])
