@@ -166,8 +166,9 @@ def skills_for_job(cfg: DictConfig) -> Skills | None:
     if set_name is None:
         return None
     fragment_len = None if set_name in OWN_POLICY else int(cfg.fragment_len)
+    libraries = cfg.get("libraries")  # absent from the saved config of a run older than the key
     key = json.dumps([str(cfg.controller.name), set_name, named_library(cfg, set_name),
-                      OmegaConf.to_container(cfg.get("libraries") or {}, resolve=True), fragment_len,
+                      OmegaConf.to_container(libraries, resolve=True) if libraries is not None else {}, fragment_len,
                       OmegaConf.to_container(cfg.clips, resolve=True)], sort_keys=True, default=str)
     if key not in _CACHE:
         _CACHE.clear()  # one job's skills at a time

@@ -102,3 +102,12 @@ def test_one_library_for_a_sweep_over_clip_sets_is_refused_before_any_job(tmp_pa
     check_sweep_library(["-m", "fragment_len=1,3,10", "library=x.npz"])  # one set: one library serves
     check_sweep_library([*sweep_file, "libraries.go_to_target_x2=x.npz"])
     check_sweep_library(["controller=steerable", "library=x.npz"])  # not a sweep
+
+
+def test_the_saved_config_of_a_run_older_than_per_set_libraries_resolves_its_skills():
+    """stage=record replays runs whose config_resolved.yaml has no `libraries` key."""
+    from omegaconf import OmegaConf
+
+    saved = OmegaConf.to_container(compose(["controller=fragments"]), resolve=True)
+    del saved["libraries"]
+    assert len(skills_for_job(OmegaConf.create(saved)).fragments) == 105
