@@ -29,13 +29,10 @@ def _learner(seed=0):
     return SVG0Retrace(GaussianPolicy(6, 3, [16], 0.1), QNetwork(6, 3, [16]), CFG)
 
 
-def test_critic_loss_matches_an_independent_retrace_computation():
-    learner, b = _learner(), _batch()
-    torch.manual_seed(123)
-    targets = learner.critic_targets(b)
-    # independent: plain python loops over the recursion, same value-sample noise
-    torch.manual_seed(123)
-    pol, crit = learner.target_policy, learner.target_critic
+def _independent_retrace(pol, crit, b, seed):
+    """Retrace targets (Munos et al. 2016, sum form) by plain python loops from the networks
+    `pol` and `crit`, with the value-sample noise of torch seed `seed` (as critic_targets draws it)."""
+    torch.manual_seed(seed)
     with torch.no_grad():
         next_mean = pol.mean(b.obs[1:])
         v = torch.stack([crit(b.obs[1:], next_mean + 0.1 * torch.randn_like(next_mean)) for _ in range(2)]).mean(0)
@@ -51,7 +48,38 @@ def test_critic_loss_matches_an_independent_retrace_computation():
                     w *= 0.9 * float(b.discounts[k - 1, j]) * float(c[k, j])
                 total += w * (float(b.rewards[k, j]) + 0.9 * float(b.discounts[k, j]) * float(v[k, j]) - float(q[k, j]))
             expected[t, j] = total
+    return expected
+
+
+def test_critic_loss_matches_an_independent_retrace_computation():
+    learner, b = _learner(), _batch()
+    torch.manual_seed(123)
+    targets = learner.critic_targets(b)
+    expected = _independent_retrace(learner.target_policy, learner.target_critic, b, 123)
     np.testing.assert_allclose(targets.numpy(), expected, atol=1e-5)
+
+
+def test_critic_regresses_on_targets_from_the_target_networks_once_they_have_diverged():
+    """Retrace targets come from the target critic and target policy (Appendix A), which lag
+    the online ones; right after a refresh both are equal, so only diverged networks can show
+    a target computed with the online critic (a moving target the critic chases)."""
+    learner, b = _learner(), _batch()
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():  # online networks moved on since the last refresh
+        for p in (*learner.critic.parameters(), *learner.policy.parameters()):
+            p.add_(0.3 * torch.randn(p.shape, generator=g))
+    from_target = _independent_retrace(learner.target_policy, learner.target_critic, b, 123)
+    from_online = _independent_retrace(learner.policy, learner.critic, b, 123)
+    assert np.abs(from_target - from_online).max() > 0.1  # the networks did diverge
+    torch.manual_seed(123)
+    np.testing.assert_allclose(learner.critic_targets(b).numpy(), from_target, atol=1e-5)
+    # and the update's critic loss is the online Q's error against those targets
+    with torch.no_grad():
+        q = learner.critic(b.obs[:-1], b.actions).numpy()
+    w = (b.mask / b.mask.sum()).numpy()
+    torch.manual_seed(123)
+    info = learner.update(b)
+    assert info["critic_loss"] == pytest.approx(float(0.5 * ((q - from_target) ** 2 * w).sum()), rel=1e-5)
 
 
 def test_policy_loss_is_svg0_with_a_kl_to_the_target_policy():
