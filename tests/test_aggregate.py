@@ -136,10 +136,10 @@ def test_plot_sweep_draws_one_curve_per_arm_with_bands(sweep, tmp_path, capsys):
 
     out = plot_sweep.main([str(sweep), "--by", "fragment_len", "-o", str(tmp_path / "fig.png")])
     assert out.stat().st_size > 5000
-    ax = plt.gcf().axes[0]
-    labels = [line.get_label() for line in ax.get_lines()]
-    assert labels == ["fragment_len=1 (3 seeds)", "fragment_len=3 (2 seeds)", "random policy"]
-    assert len(ax.collections) == 2                                # one standard-error band per arm
+    fig = plt.gcf()
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert legend == ["fragment_len=1 (3 seeds)", "random policy (dashed)", "fragment_len=3 (2 seeds)"]
+    assert len(fig.axes[0].collections) == 2                        # one standard-error band per arm
     table = capsys.readouterr().out
     assert "n_failed" in table and "iqm" in table
     with pytest.raises(SystemExit):

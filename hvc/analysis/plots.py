@@ -37,8 +37,8 @@ def _panels(facet: str | None, frame: pd.DataFrame, width: float = 4.2, height: 
 def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None = None,
                 x: str = "learner_steps", scores: pd.DataFrame | None = None, title: str | None = None):
     """One line per arm of `by` (mean over seeds; band: +- one standard error) in one panel
-    per value of `facet`; the legend says how many seeds each arm has. A dashed line marks
-    the random policy's return where `scores` (final_scores) gives it."""
+    per value of `facet`; the legend says how many seeds each arm has. A dashed line in the
+    arm's colour marks its random policy's return where `scores` (final_scores) gives it."""
     by = [b for b in by if b != facet]
     fig, names, axes = _panels(facet, curves)
     arms = [_key(a) for a in curves.groupby(by, sort=True).groups] if by else [()]
@@ -51,10 +51,13 @@ def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None 
             label = f"{_label(by, arm)} ({c.n_runs.iloc[0]} seeds)"
             ax.plot(c[x], c["mean"], color=colour, label=label)
             ax.fill_between(c[x], c["mean"] - c.se.fillna(0), c["mean"] + c.se.fillna(0), color=colour, alpha=0.25)
-        if scores is not None:
-            random = scores[scores[facet] == name].random if facet else scores.random
-            if random.notna().any():
-                ax.axhline(random.mean(), color="grey", ls="--", lw=1, label="random policy")
+            if scores is not None:  # each arm's own random policy: bodies and tasks differ in scale
+                mine = scores[facet] == name if facet else pd.Series(True, index=scores.index)
+                for key, value in zip(by, arm):
+                    mine &= scores[key] == value
+                random = scores[mine].random
+                if random.notna().any():
+                    ax.axhline(random.mean(), color=colour, ls="--", lw=1, label="random policy (dashed)")
         ax.set_title(f"{facet}={name}" if facet else (title or ""))
         ax.set_xlabel(X_LABELS[x])
         ax.set_ylabel("return per episode")
@@ -63,9 +66,11 @@ def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None 
     for ax in axes:
         for handle, label in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(label, handle)
+    if "random policy (dashed)" in handles:
+        handles["random policy (dashed)"] = plt.Line2D([], [], color="grey", ls="--", lw=1)
     fig.legend(list(handles.values()), list(handles), loc="outside right upper", fontsize=8)
     if title and facet:
-        fig.suptitle(title)
+        fig.suptitle(title, x=0.02, ha="left")
     return fig
 
 

@@ -1,0 +1,41 @@
+"""Every notebook in analysis/ runs on the data committed in the repository (papermill, its
+`parameters` cell at the defaults) and draws its figures; one also runs on other data."""
+import json
+from pathlib import Path
+
+import pytest
+
+ANALYSIS = Path(__file__).resolve().parents[1] / "analysis"
+NOTEBOOKS = sorted(ANALYSIS.glob("*.ipynb"))
+
+
+def _execute(notebook: Path, out: Path, **parameters) -> dict:
+    import papermill
+
+    papermill.execute_notebook(str(notebook), str(out), parameters=parameters, cwd=str(ANALYSIS),
+                               kernel_name="python3", progress_bar=False)
+    return json.loads(out.read_text())
+
+
+def _images(nb: dict) -> int:
+    return sum("image/png" in o.get("data", {}) for c in nb["cells"] for o in c.get("outputs", []))
+
+
+@pytest.mark.parametrize("notebook", NOTEBOOKS, ids=[n.stem for n in NOTEBOOKS])
+def test_notebook_runs_on_the_committed_data(notebook, tmp_path):
+    nb = _execute(notebook, tmp_path / notebook.name)
+    assert _images(nb) >= 1
+
+
+def test_a_notebook_takes_its_data_dir_as_a_parameter(tmp_path):
+    from test_aggregate import make_run
+
+    for length, value in ((1, 2.0), (3, 7.0)):
+        for seed in (0, 1):
+            make_run(tmp_path / "runs", f"fl{length}_s{seed}", {"fragment_len": length, "seed": seed},
+                     lambda t, v=value + seed: v)
+    nb = _execute(ANALYSIS / "figA4_scaling.ipynb", tmp_path / "out.ipynb", a_dir=str(tmp_path / "runs"))
+    texts = ["".join(o["data"]["text/plain"]) for c in nb["cells"] for o in c.get("outputs", [])
+             if "text/plain" in o.get("data", {})]
+    tables = [t for t in texts if "iqm" in t]
+    assert len(tables) == 1 and "7.5" in tables[0] and "2.5" in tables[0]   # IQM of 7, 8 and of 2, 3
