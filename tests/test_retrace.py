@@ -1,5 +1,6 @@
 """Retrace targets against the published sum form, computed independently."""
 import numpy as np
+import pytest
 import torch
 
 from hvc.algorithms.retrace import retrace_targets, truncated_traces
@@ -41,3 +42,44 @@ def test_zero_traces_give_one_step_targets():
     d = torch.ones(4, 3)
     targets = retrace_targets(r, d, q, v, torch.zeros(4, 3), 0.9)
     torch.testing.assert_close(targets, r + 0.9 * v)
+
+
+def _high_level_critic_loss(log_mu_of):
+    """The continuous high-level learner's critic loss on one fixed batch (fresh learner, fixed
+    seeds), with behaviour log-probabilities `log_mu_of(log_pi)` of the target policy's log_pi."""
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from hvc.agents.network import AgentSpec, HighLevelAgent
+    from hvc.algorithms.hl_learners import ContinuousLearner
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
+                                     value_mlp=(16, 1), critic_takes_action=True))
+    learner = ContinuousLearner(agent, OmegaConf.create({"target_update_period": 10**6}),
+                                OmegaConf.create({"sigma_clip": [0.3, 1.0]}), SimpleNamespace(low=-1.0, high=1.0))
+    T, B = 5, 4
+    g = torch.Generator().manual_seed(1)
+    b = {"proprio": torch.randn(T + 1, B, 3, generator=g), "task": torch.zeros(T + 1, B, 0),
+         "prev_reward": torch.zeros(T + 1, B), "prev_action": torch.zeros(T + 1, B, 2),
+         "first": torch.zeros(T + 1, B), "action": torch.rand(T, B, 2, generator=g) * 2 - 1,
+         "reward": torch.rand(T, B, generator=g), "discount": torch.ones(T, B),
+         "new_action": torch.ones(T, B), "state": torch.zeros(B, 4, 128)}
+    with torch.no_grad():
+        _, _, t_out, _ = learner.replay_unrolls(b)
+        log_pi = learner.distribution(learner.target, t_out[:-1]).log_prob(b["action"]).sum(-1)
+    b["log_mu"] = log_mu_of(log_pi)
+    torch.manual_seed(2)  # the same value samples in every call
+    return learner.update(torch.optim.SGD(agent.parameters(), lr=0.0), b, 0.9)["critic_loss"]
+
+
+def test_high_level_retrace_truncates_traces_at_one():
+    """c = lambda min(1, pi/mu) (Munos et al. 2016): an action the target policy likes more than
+    the behaviour did gets the on-policy trace, never more, or the off-policy correction
+    would blow up; so pi/mu = 1, 20 or e^30 give the same targets, and only pi/mu < 1 cuts them."""
+    on_policy = _high_level_critic_loss(lambda log_pi: log_pi)
+    assert _high_level_critic_loss(lambda log_pi: log_pi - 3.0) == pytest.approx(on_policy, rel=1e-6)
+    assert _high_level_critic_loss(lambda log_pi: log_pi - 30.0) == pytest.approx(on_policy, rel=1e-6)
+    cut = _high_level_critic_loss(lambda log_pi: log_pi + 3.0)  # pi/mu = e^-3: traces ~0.05
+    assert abs(cut - on_policy) > 1e-3 * on_policy  # the traces do reach the loss here
