@@ -59,3 +59,45 @@ def test_fragment_keys_are_start_and_end_features():
     np.testing.assert_allclose(keys[1, 3:6], [0, 0, 1])               # gravity direction when upright
     np.testing.assert_allclose(keys[1, 18:21], ref.velocity[6])       # end state = start + length
     np.testing.assert_allclose(keys[2, 24:36], ref.end_effectors[11].ravel())  # clamped at the clip's end
+
+
+def _turned_reference(quats, velocity, seed=0):
+    n = len(quats)
+    rng = np.random.default_rng(seed)
+    return Reference("x", 0.03, False, np.zeros((n, 56)), np.zeros((n, 56)), np.zeros((n, 3)), np.asarray(quats),
+                     np.asarray(velocity, float), np.zeros((n, 3)), rng.normal(size=(n, 4, 3)), np.linspace(0, 1, n))
+
+
+def test_fragment_keys_give_the_velocity_in_the_root_frame_of_a_turned_body():
+    """Keys describe a fragment from the body's point of view (Appendix A.4): running east
+    while facing north is moving to the body's right, -y in its frame; a rotation applied the
+    wrong way (world to root instead of root to world) gives +y, and only a turned root shows it."""
+    yaw90 = [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]  # the root's x axis along world +y
+    ref = _turned_reference([yaw90] * 4, [[2.0, 0.0, 0.5]] * 4)
+    keys = fragment_keys(ref, [0], 3)
+    np.testing.assert_allclose(keys[0, :3], [0.0, -2.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(keys[0, 3:6], [0, 0, 1], atol=1e-12)  # a pure turn leaves gravity along z
+
+
+def test_fragment_keys_match_an_independent_rotation_and_ignore_the_world_heading():
+    """Any root orientation: velocity and up direction rotated into the root frame as dm_control's
+    transformations do it; and a whole clip turned about the vertical has the same keys (a query
+    names a movement, not a compass direction)."""
+    from dm_control.utils import transformations as tr
+
+    rng = np.random.default_rng(3)
+    n = 8
+    quats = rng.normal(size=(n, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    velocity = rng.normal(size=(n, 3))
+    ref = _turned_reference(quats, velocity)
+    keys = fragment_keys(ref, [0, 2, 5], 2)
+    for row, s in enumerate([0, 2, 5]):
+        for offset, t in ((0, s), (18, min(s + 2, n - 1))):
+            inv = tr.quat_inv(quats[t])
+            np.testing.assert_allclose(keys[row, offset:offset + 3], tr.quat_rotate(inv, velocity[t]), atol=1e-9)
+            np.testing.assert_allclose(keys[row, offset + 3:offset + 6], tr.quat_rotate(inv, np.array([0., 0, 1])),
+                                       atol=1e-9)
+    yaw = np.array([np.cos(0.6), 0, 0, np.sin(0.6)])  # the whole clip turned 69 degrees about z
+    turned = _turned_reference([tr.quat_mul(yaw, q) for q in quats], [tr.quat_rotate(yaw, v) for v in velocity])
+    np.testing.assert_allclose(fragment_keys(turned, [0, 2, 5], 2), keys, atol=1e-9)
