@@ -244,3 +244,25 @@ def test_missing_clip_id_names_id_and_file():
     assert "CMU_016_22" in message and str(DM_TEST_H5) in message and "\n" not in message
     with pytest.raises(FileNotFoundError, match="nope.h5"):
         clips.load_clip(DM_TEST_H5.parent / "nope.h5", "x")
+
+
+@needs_mocap
+@pytest.mark.parametrize("rel", ["amc/02/02_01.amc", "bvh/16/16_41.bvh"])
+def test_converted_root_travels_leg_scale_times_the_captures_distance(converted, poser, rel):
+    """Step 2 of the pipeline: the walker's legs are not the subject's, so the root's path is
+    scaled by walker leg / subject leg, or the feet slide along the floor with every stride.
+    Horizontal displacement (the floor placement only moves z) at steps that fall on capture
+    frames equals that ratio times the capture's, the subject's leg read from its own file."""
+    path = CMU / rel
+    frames = convert.load_frames(path)
+    if path.suffix == ".amc":
+        subject_leg = asf_amc.parse_asf(CMU / "asf/02.asf").leg_length_m()
+    else:
+        subject_leg = bvh.leg_length_m(bvh.read_bvh(path))
+    scale = poser.leg_length / subject_leg
+    clip = clips.load_clip(converted, convert.clip_id_from_path(path))
+    steps = np.arange(0, clip.num_steps, 5)  # 5 steps of 0.03 s = 18 frames at 120 fps
+    capture = frames.root_pos[np.round(steps * DT * frames.fps).astype(int), :2] - frames.root_pos[0, :2]
+    walker = clip.position[steps, :2] - clip.position[0, :2]
+    assert np.linalg.norm(capture[-1]) > 2.0  # a clip that travels: a wrong scale shows by metres x (1 - scale)
+    np.testing.assert_allclose(walker, scale * capture, atol=2e-3)
