@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from hvc.algorithms.vtrace import vtrace_losses, vtrace_targets
+from hvc.algorithms.vtrace import VTraceReturns, vtrace_losses, vtrace_targets
 
 
 def _reference(log_rhos, d, r, v, boot, gamma, rho_bar, c_bar):
@@ -86,3 +86,41 @@ def test_vtrace_clips_rho_and_c_each_by_its_own_bound(rho_bar, c_bar):
     # the two bounds matter separately here: the swapped reference is far from the published one
     swapped, _ = _reference(log_rhos, d, r, v, boot, gamma, c_bar, rho_bar)
     assert np.abs(swapped - vs).max() > 0.05
+
+
+def _impala_losses(logits, actions, values, vs, adv, new_action, mask, entropy_cost):
+    """IMPALA's loss (Espeholt et al. 2018, Sec. 4.2) in numpy: policy gradient and entropy averaged
+    over the steps that sampled a new action, value regression (baseline cost 0.5) over valid steps."""
+    log_probs = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
+    taken = np.take_along_axis(log_probs, actions[..., None], -1)[..., 0]
+    pg_mask = new_action * mask
+    n_pg, n = max(pg_mask.sum(), 1.0), max(mask.sum(), 1.0)
+    entropy = -(np.exp(log_probs) * log_probs).sum(-1)
+    pg_loss = -(taken * adv * pg_mask).sum() / n_pg
+    value_loss = 0.5 * ((vs - values) ** 2 * mask).sum() / n
+    mean_entropy = (entropy * pg_mask).sum() / n_pg
+    return {"loss": pg_loss + 0.5 * value_loss - entropy_cost * mean_entropy, "pg_loss": pg_loss,
+            "value_loss": value_loss, "entropy": mean_entropy}
+
+
+@pytest.mark.parametrize("T,B,A", [(6, 3, 4), (2, 1, 3)])
+def test_vtrace_losses_are_impalas_on_masked_batches(T, B, A):
+    """The value each loss term reports, with padding after an episode's end (mask 0) and held
+    steps (no new action); the (2, 1) batch has one valid step and one sampled action, so the
+    averages divide by exactly one. Only gradients' zero pattern was checked before."""
+    rng = np.random.default_rng(4)
+    logits, values = rng.normal(size=(T, B, A)), rng.normal(size=(T, B))
+    actions = rng.integers(0, A, (T, B))
+    vs, adv = rng.normal(size=(T, B)), rng.normal(size=(T, B))
+    mask = np.ones((T, B))
+    mask[-1, 0] = 0  # the first unroll ended before its last step
+    new_action = np.zeros((T, B))
+    new_action[::2] = 1
+    new_action[-1, 0] = 1  # a new action on a padding step does not count
+    returns = VTraceReturns(vs=torch.tensor(vs), pg_advantages=torch.tensor(adv))
+    ours = vtrace_losses(torch.tensor(logits), torch.tensor(actions), torch.tensor(values), returns,
+                         torch.tensor(new_action), torch.tensor(mask), entropy_cost=0.03)
+    expected = _impala_losses(logits, actions, values, vs, adv, new_action, mask, 0.03)
+    assert set(ours) == set(expected)  # the names the metrics are logged under
+    for key, value in expected.items():
+        assert float(ours[key]) == pytest.approx(value, rel=1e-9, abs=1e-12), key
