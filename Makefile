@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 ARGS ?=
 PYTEST_ARGS ?=
 
-.PHONY: setup run test bench
+.PHONY: setup run test bench mutation
 
 setup: $(VENV)/.installed
 
@@ -24,3 +24,16 @@ test: setup
 
 bench: setup
 	$(VENV)/bin/hvc-bench
+
+# Mutation testing (issue 21): mutmut over the paper's maths and the resume path, each group
+# against its fast test files; writes docs/results/mutation/. About an hour on 2 cores; not in CI.
+# MUTATION_GROUPS="vtrace retrace" runs some groups (scripts/mutation.py --list names them).
+MUTATION_GROUPS ?=
+MUTATION_ARGS ?=
+
+$(VENV)/.mutation-installed: $(VENV)/.installed pyproject.toml
+	$(PY) -m pip install --quiet -e '.[mutation]'
+	touch $@
+
+mutation: $(VENV)/.mutation-installed
+	nice -n 19 $(PY) scripts/mutation.py $(MUTATION_ARGS) $(MUTATION_GROUPS)

@@ -34,8 +34,8 @@ def test_vtrace_matches_the_published_formula_on_random_inputs():
     d = (rng.uniform(size=(T, B)) > 0.15).astype(float)
     r, v, boot = rng.normal(size=(T, B)), rng.normal(size=(T, B)), rng.normal(size=B)
     as_t = lambda x: torch.tensor(x, dtype=torch.float64)  # noqa: E731
-    out = vtrace_targets(as_t(log_rhos), as_t(d), as_t(r), as_t(v), as_t(boot), gamma, 1.0, 1.0)
-    vs, adv = _reference(log_rhos, d, r, v, boot, gamma, 1.0, 1.0)
+    out = vtrace_targets(as_t(log_rhos), as_t(d), as_t(r), as_t(v), as_t(boot), gamma)  # IMPALA's defaults:
+    vs, adv = _reference(log_rhos, d, r, v, boot, gamma, 1.0, 1.0)                       # rho_bar = c_bar = 1
     np.testing.assert_allclose(out.vs.numpy(), vs, atol=1e-6)
     np.testing.assert_allclose(out.pg_advantages.numpy(), adv, atol=1e-6)
 
