@@ -185,7 +185,8 @@ def run_group(name: str, max_children: int, worktree: bool, workroot: Path) -> d
         "uncommitted_changes": dirty, "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
         "duration_s": round(duration, 1), "max_children": max_children,
         "mutmut": _mutmut_version(),
-        "python": platform.python_version(), "command": f"python scripts/mutation.py {name}",
+        "python": platform.python_version(), "nice": os.nice(0),
+        "command": " ".join(["python", "scripts/mutation.py", *sys.argv[1:]]),
         "statuses": statuses, "survivors": survivors,
     }
 
@@ -273,7 +274,7 @@ def render() -> str:
         s = scored[name]
         out += ["", f"## {name}", "",
                 f"`{r['command']}` on {r['source']} of {r['commit']}, {r['date']}, {r['duration_s']:.0f} s "
-                f"with {r['max_children']} worker(s), {r['mutmut']}, Python {r['python']}. "
+                f"with {r['max_children']} worker(s) at nice {r.get('nice', '?')}, {r['mutmut']}, Python {r['python']}. "
                 f"Statuses: {', '.join(f'{k} {v}' for k, v in sorted(s['counts'].items()))}."]
         if r.get("mutant_globs"):
             out.append(f"Mutants restricted to {', '.join('`' + g + '`' for g in r['mutant_globs'])}.")
