@@ -78,18 +78,10 @@ def record_video(cfg: DictConfig, path: Path) -> Path:
     task, body, render = env_dicts(cfg)
     env = FastEnv.build({**task, "layout_pool": 1}, body, render, seed=cfg.seed, render=False)
     env.reset()
-    names = {env.model.cam(i).name for i in range(env.model.ncam)}
-    camera = next((c for c in VIDEO_CAMERAS if c in names), None)
-    view = CameraRenderer(env.model, camera, {**render, "height": 192, "width": 256}) if camera else None
-    own = CameraRenderer(env.model, env.layout.camera, render) if env.layout.camera else None
+    view, own = _cameras(env, render)
     frames = []
     for _ in range(cfg.video_steps):
-        parts = [view.render(env.data)] if view else []
-        if own is not None:
-            eye = own.render(env.data)
-            scale = 192 // eye.shape[0]
-            parts.append(np.kron(eye, np.ones((scale, scale, 1), np.uint8))[:192])
-        frames.append(np.concatenate(parts, axis=1))
+        frames.append(np.concatenate(_views(env, view, own), axis=1))
         if env.step(env.random_action())[3]:
             env.reset()
     for r in (view, own):
@@ -97,3 +89,40 @@ def record_video(cfg: DictConfig, path: Path) -> Path:
             r.close()
     env.close()
     return write_video(path, frames, fps=1.0 / env.control_timestep)
+
+
+def _cameras(env, render) -> tuple:
+    """A third-person camera (the first of VIDEO_CAMERAS the model has) and the agent's own."""
+    names = {env.model.cam(i).name for i in range(env.model.ncam)}
+    camera = next((c for c in VIDEO_CAMERAS if c in names), None)
+    view = CameraRenderer(env.model, camera, {**render, "height": 192, "width": 256}) if camera else None
+    own = CameraRenderer(env.model, env.layout.camera, render) if env.layout.camera else None
+    return view, own
+
+
+def _views(env, view, own) -> list[np.ndarray]:
+    """The current frame of each camera, the agent's scaled up to the third-person height."""
+    parts = [view.render(env.data)] if view else []
+    if own is not None:
+        eye = own.render(env.data)
+        scale = 192 // eye.shape[0]
+        parts.append(np.kron(eye, np.ones((scale, scale, 1), np.uint8))[:192])
+    return parts
+
+
+def task_stills(cfg: DictConfig, steps: int = 0) -> list[np.ndarray]:
+    """Fig. 5: the task's first state (after `steps` random actions) from a third-person camera
+    and, on vision tasks, from the agent's own camera."""
+    task, body, render = env_dicts(cfg)
+    env = FastEnv.build({**task, "layout_pool": 1}, body, render, seed=cfg.seed, render=False)
+    env.reset()
+    for _ in range(steps):
+        env.step(env.random_action())
+    view, own = _cameras(env, render)
+    try:
+        return _views(env, view, own)
+    finally:
+        for r in (view, own):
+            if r is not None:
+                r.close()
+        env.close()
