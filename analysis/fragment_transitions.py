@@ -11,12 +11,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
 
 
 def transition_counts(run_dir: Path) -> tuple[np.ndarray, pd.DataFrame]:
@@ -31,23 +28,24 @@ def transition_counts(run_dir: Path) -> tuple[np.ndarray, pd.DataFrame]:
     return counts, table
 
 
-def plot(run_dir: Path, out: Path) -> Path:
-    counts, table = transition_counts(run_dir)
+def draw(counts: np.ndarray, table: pd.DataFrame, title: str = "fragment transitions (log density)"):
+    """Fig. A.5: the transition density with the clips' blocks, beside the share of choices per behaviour."""
     density = counts / max(counts.sum(), 1)
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 5), gridspec_kw={"width_ratios": [3, 2]})
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 5), gridspec_kw={"width_ratios": [3, 2]}, layout="constrained")
     ax.imshow(np.log1p(density * 1e4), cmap="magma", origin="lower")
-    bounds = np.flatnonzero(np.diff(table["clip"].values)) + 0.5
-    for b in bounds:
+    for b in np.flatnonzero(np.diff(table["clip"].values)) + 0.5:
         ax.axhline(b, color="w", lw=0.5)
         ax.axvline(b, color="w", lw=0.5)
-    ax.set_xlabel("next fragment")
-    ax.set_ylabel("fragment")
-    ax.set_title("fragment transitions (log density)")
+    ax.set(xlabel="next fragment", ylabel="fragment", title=title)
     usage = table.assign(chosen=counts.sum(0) + counts.sum(1)).groupby("behaviour", sort=False).chosen.sum()
     bx.bar(usage.index, usage.values / max(usage.values.sum(), 1))
     bx.set_title("share of choices per behaviour")
     bx.tick_params(axis="x", rotation=45)
-    fig.tight_layout()
+    return fig
+
+
+def plot(run_dir: Path, out: Path) -> Path:
+    fig = draw(*transition_counts(run_dir))
     fig.savefig(out, dpi=110)
     return out
 

@@ -9,13 +9,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import matplotlib
 
-matplotlib.use("Agg")
-
-from hvc.analysis import curves, final_scores, iqm_table, load_runs  # noqa: E402
-from hvc.analysis.plots import plot_curves  # noqa: E402
-from hvc.analysis.runs import STATUSES  # noqa: E402
+from hvc.analysis import curves, final_scores, iqm_table, load_runs
+from hvc.analysis.plots import plot_curves
+from hvc.analysis.runs import STATUSES
 
 
 def main(argv: list[str] | None = None) -> Path:

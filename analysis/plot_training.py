@@ -9,13 +9,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
+import pandas as pd
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import pandas as pd  # noqa: E402
-
-from hvc.analysis.returns import episode_returns  # noqa: E402
+from hvc.analysis.returns import episode_returns
 
 
 def plot(out: Path, run_dirs: list[Path], points: int = 60) -> Path:

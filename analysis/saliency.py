@@ -13,14 +13,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from hvc.agents.network import AgentSpec, HighLevelAgent  # noqa: E402
+from hvc.agents.network import AgentSpec, HighLevelAgent
 
 
 def load_agent(run_dir: Path) -> HighLevelAgent:
