@@ -1,71 +1,125 @@
-"""`hvc-run`: compose the config with Hydra, validate it, dispatch the stage. Nothing else."""
+"""`hvc-run`: compose the config with Hydra, validate it and the files it names, dispatch the
+stage. A user's error is one line; in a sweep a failed job is recorded and the sweep goes on."""
 from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
 import hydra
 from hydra import compose
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import ConfigCompositionException, HydraException, OverrideParseException
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError
 
-from hvc.config import CONF_DIR, ConfigError, check_group_overrides, resolve_parallelism, validate
+from hvc.config import CONF_DIR, ConfigError, check_group_overrides, resolve_parallelism, unknown_key, validate
 from hvc.errors import HvcUserError
 from hvc.provenance import record_command
-from hvc.runtime.run_dirs import merge_overrides, save_overrides, saved_overrides
+from hvc.runtime.inputs import check_inputs
+from hvc.runtime.lock import locked
+from hvc.runtime.run_dirs import merge_overrides, remove_stub, save_overrides, saved_overrides
+from hvc.runtime.sweep_report import SweepReport, forget_failure, record_failure, remove_stub_sweep
 
 log = logging.getLogger("hvc")
 
 
 USER_ERRORS = (FileNotFoundError, HvcUserError, ConfigError)
+# Options that take a path: a value Hydra's override grammar cannot read as written (a sweep
+# job dir such as 0_lowlevel.hidden-[16], or 0_fragment_len=1,seed=0 from before plain names) is quoted.
+PATH_OPTIONS = ("resume", "from_run", "library", "mocap_file", "lowlevel.reuse", "lowlevel.warm_start",
+                "hydra.run.dir")
 
 
 @hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")
 def _run(cfg: DictConfig) -> None:
+    """One job. A new run dir that a failure left holding only records (Hydra's and ours) is
+    removed; in a sweep a failed job writes why into its dir and returns, so that the
+    launcher goes on with the next job and the sweep ends with a summary (SweepReport)."""
+    hydra_cfg = HydraConfig.get()
+    job_dir = Path(hydra_cfg.runtime.output_dir)
+    log_file = f"{hydra_cfg.job.name}.log"
+    in_sweep = hydra_cfg.mode == RunMode.MULTIRUN
+    resumed_here = cfg.get("resume") not in (None, True) and Path(str(cfg.resume)).resolve() == job_dir.resolve()
+    if in_sweep:
+        forget_failure(job_dir)
     try:
-        validate(cfg)
-        run_dir = Path(HydraConfig.get().runtime.output_dir)
-        given = list(HydraConfig.get().overrides.task)  # this job's own: a multirun job's values
-        options = given
-        if cfg.get("resume"):  # go on with the run's own options, this command's winning
-            run_dir = _run_to_resume(cfg, run_dir)
-            options = merge_overrides(saved_overrides(run_dir), given)
-            cfg = _composed(cfg, given, options)
-        resolve_parallelism(cfg)
-    except ConfigError as error:
-        print(f"hvc-run: error: {error}", file=sys.stderr)
-        sys.exit(2)
-    overrides = HydraConfig.get().overrides  # this job's own: a multirun job's values, not the sweep's lists
-    resumed = [f"resume={run_dir}" if cfg.get("resume") and o.startswith("resume=") else o  # resume=true: the
-               for o in overrides.task]                                                     # run it found
-    record_command(run_dir, [*resumed, *(o for o in overrides.hydra if not o.startswith("hydra.mode="))])
-    save_overrides(run_dir, options)
-    # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
-    (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
-    log.info("stage=%s run dir %s", cfg.stage, run_dir)
+        _job(cfg, job_dir)
+    except USER_ERRORS as error:
+        if not in_sweep:
+            print(f"hvc-run: error: {error}", file=sys.stderr)
+            sys.exit(2)
+        log.error("hvc-run: error: %s", error)
+        record_failure(job_dir, list(hydra_cfg.overrides.task), str(error), "error", job_dir / log_file)
+    except Exception as error:
+        if not in_sweep:
+            raise
+        log.exception("job %s crashed; the sweep goes on", job_dir)
+        record_failure(job_dir, list(hydra_cfg.overrides.task), f"{type(error).__name__}: {error}", "crash",
+                       job_dir / log_file)
+    finally:
+        if not (in_sweep or resumed_here):
+            remove_stub(job_dir, log_file)
+
+
+def _job(cfg: DictConfig, job_dir: Path) -> None:
+    validate(cfg)
+    run_dir = job_dir
+    given = list(HydraConfig.get().overrides.task)  # this job's own: a multirun job's values
+    options = given
+    if cfg.get("resume"):  # go on with the run's own options, this command's winning
+        run_dir = _run_to_resume(cfg, job_dir)
+        options = merge_overrides(saved_overrides(run_dir), given)
+        cfg = _composed(cfg, given, options)
+    resolve_parallelism(cfg)
+    check_inputs(cfg, run_dir if cfg.get("resume") else None)
+    with locked(run_dir):
+        if run_dir != job_dir:  # resume=true: the log goes on in the run it found
+            _log_into(run_dir, job_dir)
+        overrides = HydraConfig.get().overrides  # this job's own: a multirun job's values, not the sweep's lists
+        resumed = [f"resume={run_dir}" if cfg.get("resume") and o.startswith("resume=") else o  # resume=true:
+                   for o in overrides.task]                                                     # the run it found
+        record_command(run_dir, [*resumed, *(o for o in overrides.hydra if not o.startswith("hydra.mode="))])
+        save_overrides(run_dir, options)
+        # Hydra keeps the unresolved config in .hydra/; this one has every interpolation filled in.
+        (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        log.info("stage=%s run dir %s", cfg.stage, run_dir)
+        if cfg.stage in ("train", "rollout"):  # resolved before any env is built: a set without skills fails first
+            _write_skills(cfg, run_dir)
+        try:
+            summary = _dispatch(cfg, run_dir)
+        except KeyboardInterrupt:  # Ctrl-C or `kill`: the stage has saved its checkpoint
+            print(f"hvc-run: stopped; continue with resume={run_dir}", file=sys.stderr)
+            sys.exit(130)
+        (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+
+
+def _write_skills(cfg: DictConfig, run_dir: Path) -> None:
+    """skills.json: which library and fragments this job's controller drives (hvc.skills).
+    Training stops here on a set without skills; a rollout drives the body without them."""
+    from hvc.errors import ControllerUnavailable
+    from hvc.skills import skills_for_job
+
     try:
-        summary = _dispatch(cfg, run_dir)
-    except USER_ERRORS as error:  # a missing file or clip, an unavailable controller: one line, no traceback
-        print(f"hvc-run: error: {error}", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:  # Ctrl-C or `kill`: the stage has saved its checkpoint
-        print(f"hvc-run: stopped; continue with resume={run_dir}", file=sys.stderr)
-        sys.exit(130)
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        skills = skills_for_job(cfg)
+    except ControllerUnavailable:
+        if cfg.stage == "train":
+            raise
+        return
+    if skills is not None:
+        skills.write(run_dir)
 
 
 def _run_to_resume(cfg: DictConfig, output_dir: Path) -> Path:
-    """resume=<run dir>, or resume=true: the newest earlier run of this job."""
+    """resume=<run dir>, or resume=true: the newest earlier run of this job not in use."""
     if cfg.resume is True:
-        from hydra.types import RunMode
-
         from hvc.runtime.run_dirs import latest_run_dir
 
         if HydraConfig.get().mode == RunMode.MULTIRUN:
-            raise ConfigError("resume=true picks one run; a sweep's jobs would all pick the same one: "
-                              "resume each with resume=<run dir>")
+            raise ConfigError(RESUME_TRUE_IN_SWEEP)
         run_dir = latest_run_dir(OmegaConf.to_container(cfg, resolve=True), output_dir)
         log.info("resume=true: continuing %s", run_dir)
     else:
@@ -73,6 +127,29 @@ def _run_to_resume(cfg: DictConfig, output_dir: Path) -> Path:
     if not run_dir.is_dir():
         raise ConfigError(f"resume={cfg.resume} is not a run directory")
     return run_dir
+
+
+RESUME_TRUE_IN_SWEEP = ("resume=true picks one run; a sweep's jobs would all pick the same one: "
+                        "resume each with resume=<run dir>")
+
+
+def _log_into(run_dir: Path, job_dir: Path) -> None:
+    """Moves the job's log file, opened by Hydra in `job_dir`, into `run_dir` (its lines so far
+    appended), so that the new dir is left a stub to remove."""
+    root = logging.getLogger()
+    for handler in [h for h in root.handlers if isinstance(h, logging.FileHandler)]:
+        old = Path(handler.baseFilename)
+        if old.parent != job_dir.resolve():
+            continue
+        root.removeHandler(handler)
+        handler.close()
+        new = run_dir / old.name
+        with open(new, "a") as f:
+            f.write(old.read_text())
+        moved = logging.FileHandler(new)
+        moved.setFormatter(handler.formatter)
+        moved.setLevel(handler.level)
+        root.addHandler(moved)
 
 
 def _composed(cfg: DictConfig, given: list[str], options: list[str]) -> DictConfig:
@@ -119,7 +196,7 @@ def _with_resumed_options(argv: list[str]) -> list[str]:
     Hydra composes, so that an option of the run's own groups (task.turn_rate_repeat of
     task=tracking) can be changed on resume, and Hydra's run dir set to the run's.
     resume=true is merged in _run, once found."""
-    dirs = [a.partition("=")[2] for a in argv if a.startswith("resume=")]
+    dirs = [_unquoted(a.partition("=")[2]) for a in argv if a.startswith("resume=")]
     if len(dirs) != 1 or dirs[0].lower() == "true" or not Path(dirs[0]).is_dir():
         return argv
     if {"-m", "--multirun"} & set(argv):
@@ -133,14 +210,68 @@ def _with_resumed_options(argv: list[str]) -> list[str]:
     return argv + restored
 
 
+def _unquoted(value: str) -> str:
+    return value[1:-1] if len(value) > 1 and value[0] == value[-1] and value[0] in "'\"" else value
+
+
+def _quoted_paths(argv: list[str]) -> list[str]:
+    """PATH_OPTIONS naming an existing path that Hydra's grammar cannot read unquoted, quoted."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser, out = OverridesParser.create(), []
+    for arg in argv:
+        key, sep, value = arg.partition("=")
+        if sep and key in PATH_OPTIONS and Path(value).exists():
+            try:
+                parser.parse_override(arg)
+            except OverrideParseException:
+                escaped = value.replace("'", "\\'")
+                arg = f"{key}='{escaped}'"
+        out.append(arg)
+    return out
+
+
+def _check_sweep(argv: list[str]) -> None:
+    """Errors of a whole sweep, told before its first job."""
+    from hvc.skills import check_sweep_library
+
+    if not {"-m", "--multirun"} & set(argv):
+        return
+    if any(a.lower() == "resume=true" for a in argv):
+        raise ConfigError(RESUME_TRUE_IN_SWEEP)
+    check_sweep_library(argv)
+
+
+def _hydra_error(error: HydraException, argv: list[str]) -> str:
+    """Hydra's multi-line message in one line; a key the config lacks gets a suggestion."""
+    cause = error.__cause__
+    if isinstance(error, ConfigCompositionException) and isinstance(cause, (ConfigAttributeError, ConfigKeyError)) \
+            and cause.full_key:
+        given = next((a for a in argv if a.lstrip("+~").partition("=")[0] == cause.full_key), cause.full_key)
+        return f"{given}: {unknown_key(cause.full_key, [a for a in argv if not a.startswith('-')])}"
+    return " ".join(line.strip() for line in str(error).splitlines() if line.strip())
+
+
 def main() -> None:
+    # Hydra raises its own errors (a typo in a key, a bad override) to us instead of printing
+    # them over several lines: they are told below in one.
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    argv = sys.argv[1:]
     try:
-        sys.argv = [sys.argv[0], *_with_resumed_options(sys.argv[1:])]
-        check_group_overrides(a for a in sys.argv[1:] if not a.startswith("-"))
+        argv = _quoted_paths(_with_resumed_options(argv))
+        check_group_overrides(a for a in argv if not a.startswith("-"))
+        _check_sweep(argv)
+        sys.argv = [sys.argv[0], *argv]
+        _run()
     except ConfigError as error:
         print(f"hvc-run: error: {error}", file=sys.stderr)
         sys.exit(2)
-    _run()
+    except HydraException as error:
+        remove_stub_sweep()
+        print(f"hvc-run: error: {_hydra_error(error, argv)}", file=sys.stderr)
+        sys.exit(2)
+    if SweepReport.failed:
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -51,6 +51,41 @@ def check_group_overrides(overrides: Iterable[str]) -> None:
                 raise ConfigError(f"unknown {key} {choice!r}; allowed: {', '.join(group_options(key))}")
 
 
+def unknown_key(key: str, overrides: Sequence[str]) -> str:
+    """One line for an override of a key the config lacks, with the closest keys as a
+    suggestion, from the config of the command's own group choices (keys differ by group)."""
+    import difflib
+
+    from hydra import compose as hydra_compose, initialize_config_dir
+
+    choices = [f"{k}={v.split(',')[0]}" for k, _, v in (o.partition("=") for o in overrides) if k in GROUPS]
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = hydra_compose(config_name="config", overrides=choices)
+    except Exception:  # noqa: BLE001 - a suggestion is a courtesy: fall back to the defaults' keys
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = hydra_compose(config_name="config")
+    matches = difflib.get_close_matches(key, _dotted_keys(OmegaConf.to_container(cfg, resolve=False)), n=2)
+    hint = f"did you mean {' or '.join(matches)}?" if matches else "`hvc-run --cfg job` lists the keys"
+    return f"no key {key} in the config; {hint}"
+
+
+def _dotted_keys(node: dict, prefix: str = "") -> list[str]:
+    keys = []
+    for k, v in node.items():
+        keys.append(f"{prefix}{k}")
+        if isinstance(v, dict):
+            keys += _dotted_keys(v, f"{prefix}{k}.")
+    return keys
+
+
+def _integral(cfg: DictConfig, key: str) -> None:
+    """A count given as an integral float (total_steps=1e6) becomes the int it is, in the config too."""
+    value = cfg.get(key)
+    if isinstance(value, float) and value.is_integer():
+        cfg[key] = int(value)
+
+
 def _positive_int(cfg: DictConfig, key: str) -> None:
     value = cfg.get(key)
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -94,6 +129,8 @@ def resolve_parallelism(cfg: DictConfig) -> None:
 
 def validate(cfg: DictConfig) -> None:
     """Raises ConfigError on the first bad value or combination."""
+    for key in (*POSITIVE_INTS, "num_envs", "in_process_envs", "torch_threads"):
+        _integral(cfg, key)
     for key in POSITIVE_INTS:
         _positive_int(cfg, key)
     if cfg.num_envs != "auto" and (isinstance(cfg.num_envs, bool) or not isinstance(cfg.num_envs, int)

@@ -25,3 +25,16 @@ class LibraryVersionError(HvcUserError, RuntimeError):
 class NonFiniteLoss(HvcUserError, FloatingPointError):
     """A loss or gradient became NaN or inf; raised before the optimiser steps, so the
     weights (and the checkpoint a run writes on its way out) are the last good ones."""
+
+
+class BadInputFile(HvcUserError):
+    """A file the user named (library, mocap file, run dir, checkpoint) is missing,
+    truncated or of another kind; the message names the file and what is wrong with it."""
+
+
+class RunDirInUse(HvcUserError):
+    """Another hvc-run writes to this run dir; a second writer would double its metrics."""
+
+
+class MissingInputFile(BadInputFile, FileNotFoundError):
+    """A named file that does not exist (a FileNotFoundError too, for callers that fall back)."""

@@ -117,7 +117,7 @@ def _hvc_run(*args, cwd):
 
 @pytest.mark.parametrize("args,needle", [
     (["stage=info", "mocap_file=/nonexistent/clips.h5"], "does not exist"),
-    (["stage=evaluate", "library=/nonexistent/lib.npz"], "No such file"),
+    (["stage=evaluate", "library=/nonexistent/lib.npz"], "does not exist"),
     (["body=rolling_ball", "controller=fragments"], "rolling_ball"),
     (["fragment_len=0"], "fragment_len"),
     (["task=nowhere"], "nowhere"),

@@ -1,5 +1,6 @@
 """The sweep files run as written (budget=smoke, fewer seeds) and a sweep dir becomes a figure:
 the paper's figures are one command away."""
+import json
 import re
 import subprocess
 import sys
@@ -31,6 +32,7 @@ def test_fragment_count_arms_run_their_own_skills(tmp_path):
         clips = yaml.safe_load((job / "config_resolved.yaml").read_text())["clips"]["name"]
         [count] = set(re.findall(r"skills: .* fragments=(\d+)", "".join(p.read_text() for p in job.glob("*.log"))))
         fragments[clips] = int(count)
+        assert json.loads((job / "skills.json").read_text())["fragments"] == int(count)  # the job's own record
     assert fragments == {"go_to_target": 105, "go_to_target_x2": 210, "go_to_target_x4": 420}
 
 

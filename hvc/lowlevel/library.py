@@ -12,6 +12,8 @@ from __future__ import annotations
 import json
 import shlex
 import sys
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -20,7 +22,7 @@ import numpy as np
 
 import hvc
 from hvc.agents.mlp import NumpyPolicy
-from hvc.errors import LibraryVersionError  # noqa: F401  (raised here, re-exported)
+from hvc.errors import BadInputFile, LibraryVersionError, MissingInputFile
 from hvc.mocap.reference import Reference
 from hvc.provenance import code_version
 
@@ -93,26 +95,81 @@ class ExpertLibrary:
 
     @classmethod
     def load(cls, path: str | Path) -> "ExpertLibrary":
-        with np.load(path, allow_pickle=False) as data:
-            meta = json.loads(str(data["meta"]))
-            version = meta.get("version")
-            if version != LIBRARY_VERSION:
-                raise LibraryVersionError(f"expert library {path} has format version {version}; this hvc "
-                                          f"({hvc.__version__}) reads version {LIBRARY_VERSION}: retrain with "
-                                          f"`hvc-run stage=lowlevel` or use a matching hvc")
-            experts = []
-            for i, info in enumerate(meta["experts"]):
-                policy = NumpyPolicy([data[f"e{i}/w{j}"] for j in range(info["layers"])],
-                                     [data[f"e{i}/b{j}"] for j in range(info["layers"])],
-                                     data[f"e{i}/obs_mean"], data[f"e{i}/obs_std"])
-                ref = Reference(clip_id=info["entry"]["id"], dt=float(info["dt"]), cyclic=bool(info["cyclic"]),
-                                **{name: data[f"e{i}/ref/{name}"].astype(np.float64) for name in REFERENCE_FIELDS})
-                experts.append(Expert(info["entry"], policy, ref, info.get("scores", {})))
-            behaviours = [Reference(clip_id=info["id"], dt=float(info["dt"]), cyclic=bool(info["cyclic"]),
-                                    **{name: data[f"b{k}/ref/{name}"].astype(np.float64)
-                                       for name in REFERENCE_FIELDS})
-                          for k, info in enumerate(meta.get("behaviours", []))]
+        """Raises BadInputFile or LibraryVersionError in one line for a file that is no library."""
+        path = Path(path)
+        data, meta = _open(path, f"expert library {path}")
+        try:
+            with data:
+                experts = []
+                for i, info in enumerate(meta["experts"]):
+                    policy = NumpyPolicy([data[f"e{i}/w{j}"] for j in range(info["layers"])],
+                                         [data[f"e{i}/b{j}"] for j in range(info["layers"])],
+                                         data[f"e{i}/obs_mean"], data[f"e{i}/obs_std"])
+                    ref = Reference(clip_id=info["entry"]["id"], dt=float(info["dt"]), cyclic=bool(info["cyclic"]),
+                                    **{name: data[f"e{i}/ref/{name}"].astype(np.float64) for name in REFERENCE_FIELDS})
+                    experts.append(Expert(info["entry"], policy, ref, info.get("scores", {})))
+                behaviours = [Reference(clip_id=info["id"], dt=float(info["dt"]), cyclic=bool(info["cyclic"]),
+                                        **{name: data[f"b{k}/ref/{name}"].astype(np.float64)
+                                           for name in REFERENCE_FIELDS})
+                              for k, info in enumerate(meta.get("behaviours", []))]
+        except (zipfile.BadZipFile, zlib.error) as error:
+            raise BadInputFile(f"expert library {path} is corrupt ({error})") from None
+        except KeyError as error:
+            raise BadInputFile(f"expert library {path} is incomplete (no entry {error})") from None
         return cls(experts, {k: v for k, v in meta.items() if k not in ("experts", "behaviours")}, behaviours)
+
+
+def _open(path: Path, name: str):
+    """(the open .npz, its metadata), once the file is known to be an expert library of this
+    version; errors name the file as `name`. numpy's own errors would suggest loading
+    pickles, which an expert library never holds."""
+    if not path.is_file():
+        raise MissingInputFile(f"{name} does not exist")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (zipfile.BadZipFile, EOFError):
+        raise BadInputFile(f"{name} is truncated or corrupt (not a complete .npz archive)") from None
+    except ValueError:  # neither .npz nor .npy: numpy took it for a pickle
+        raise BadInputFile(f"{name} is not an .npz archive") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise BadInputFile(f"{name} is a single .npy array, not an .npz expert library")
+    try:
+        return data, _meta(data, name)
+    except BaseException:
+        data.close()
+        raise
+
+
+def _meta(data, name: str) -> dict:
+    if "meta" not in data.files:
+        raise BadInputFile(f"{name} is an .npz archive without a 'meta' entry, so not an expert library "
+                           f"(stage=lowlevel writes those: experts_<clips>.npz)")
+    try:
+        meta = json.loads(str(data["meta"]))
+    except (zipfile.BadZipFile, zlib.error, ValueError) as error:
+        raise BadInputFile(f"{name} has a corrupt 'meta' entry ({error})") from None
+    version = meta.get("version") if isinstance(meta, dict) else None
+    if version != LIBRARY_VERSION:
+        raise LibraryVersionError(f"{name} has format version {version}; this hvc "
+                                  f"({hvc.__version__}) reads version {LIBRARY_VERSION}: retrain with "
+                                  f"`hvc-run stage=lowlevel` or use a matching hvc")
+    return meta
+
+
+def check_library_file(path: str | Path, name: str | None = None) -> None:
+    """Everything ExpertLibrary.load would refuse, and every entry's checksum, without
+    building the experts: for checking a user's file before any work. Errors name the file
+    as `name` (e.g. the option that gave it)."""
+    path = Path(path)
+    name = name or f"expert library {path}"
+    data, _ = _open(path, name)
+    with data:
+        try:
+            bad = data.zip.testzip()
+        except zlib.error:
+            bad = "an entry"
+    if bad:
+        raise BadInputFile(f"{name} is corrupt ({bad} fails its checksum)")
 
 
 def provenance(steps: Sequence[int], extra: dict[str, Any] | None = None) -> dict[str, Any]:

@@ -21,7 +21,7 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Mapping
 
 import mujoco
 import numpy as np
@@ -33,7 +33,8 @@ from hvc.algorithms.svg0_retrace import SVG0Retrace
 from hvc.envs.fast_env import FastEnv
 from hvc.errors import NonFiniteLoss
 from hvc.lowlevel.evaluation import evaluate, policy_observation
-from hvc.runtime.metrics import MetricsLogger
+from hvc.runtime.checkpoint import save_checkpoint
+from hvc.runtime.metrics import continue_metrics
 from hvc.runtime.replay import UnrollReplay
 
 
@@ -135,12 +136,6 @@ def load_warm_start(policy: GaussianPolicy, expert: NumpyPolicy, mean: np.ndarra
     policy.normalizer.set(mean, std)
 
 
-def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_suffix(".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 class StopRequest:
     """SIGTERM (the launcher stopping its workers, or `kill`) asks the training loop to save a
     checkpoint and stop at the next unroll boundary, instead of losing what it did since the
@@ -194,9 +189,9 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     replay = UnrollReplay(int(cfg["replay_unrolls"]), int(cfg["unroll"]), state_size, env.action_size)
     checkpoint = out_dir / "checkpoint.pt"
     counters = {"env_steps": 0, "episodes": 0, "critic_only_until": 0}
-    metrics = MetricsLogger(out_dir / "metrics.csv", tensorboard=True)
-    if checkpoint.exists():
-        state = torch.load(checkpoint, weights_only=True)
+    state = torch.load(checkpoint, weights_only=True) if checkpoint.exists() else None
+    metrics, _ = continue_metrics(out_dir / "metrics.csv", state, tensorboard=True)  # no row twice after a kill
+    if state is not None:
         learner.load_state_dict(state["learner"])
         replay.load_state_dict(state["replay"])
         counters.update({k: int(v) for k, v in state["counters"].items()})
@@ -231,9 +226,12 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         metrics.log(0, evaluate(env, _greedy(NumpyPolicy.from_torch(policy)), int(cfg["eval_episodes"]), "eval_"))
 
     def save() -> None:
-        _atomic_save({"learner": learner.state_dict(), "replay": replay.state_dict(), "counters": counters,
-                      "rng": _rng_state(rng), "env_rng": _rng_state(env.rng),
-                      "torch_rng": torch.get_rng_state()}, checkpoint)
+        save_checkpoint({"learner": learner.state_dict(), "replay": replay.state_dict(), "counters": counters,
+                         "rng": _rng_state(rng), "env_rng": _rng_state(env.rng),
+                         "torch_rng": torch.get_rng_state(), "metrics": metrics.mark()}, checkpoint)
+
+    if state is None:
+        save()  # behaviour cloning done: a kill from here on loses at most one interval
 
     actor = NumpyPolicy.from_torch(policy)
     unroll, batch_size = int(cfg["unroll"]), int(cfg["batch_size"])

@@ -18,6 +18,7 @@ import numpy as np
 from dm_control.locomotion.mocap import loader as mocap_loader
 
 from hvc.errors import ClipNotFoundError  # noqa: F401  (raised here, re-exported)
+from hvc.mocap.source import check_mocap_file
 
 #: ReferenceClip array fields; each is a `walker/<field>` entry of dm_control's Trajectory.
 CLIP_FIELDS: tuple[str, ...] = (
@@ -113,7 +114,4 @@ def load_clip(h5_path: str | Path, clip_id: str, start_step: int = 0, end_step: 
 
 
 def _existing(h5_path: str | Path) -> Path:
-    path = Path(h5_path)
-    if not path.is_file():
-        raise FileNotFoundError(f"mocap HDF5 file not found: {path}")
-    return path
+    return check_mocap_file(Path(h5_path))

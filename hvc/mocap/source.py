@@ -13,6 +13,8 @@ from pathlib import Path
 
 import h5py
 
+from hvc.errors import BadInputFile, MissingInputFile
+
 log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -27,10 +29,7 @@ def converted_file(model_version: str) -> Path:
 
 def find_mocap_file(explicit: str | None, model_version: str = "2019", convert_if_missing: bool = True) -> Path:
     if explicit:
-        path = Path(explicit).expanduser()
-        if not path.exists():
-            raise FileNotFoundError(f"mocap_file={explicit} does not exist")
-        return path
+        return check_mocap_file(Path(explicit).expanduser(), f"mocap_file={explicit}")
     candidates = []
     if os.environ.get("HVC_MOCAP_FILE"):
         candidates.append(Path(os.environ["HVC_MOCAP_FILE"]).expanduser())
@@ -53,6 +52,26 @@ def find_mocap_file(explicit: str | None, model_version: str = "2019", convert_i
         "no mocap file: searched " + ", ".join(str(c) for c in candidates)
         + "; convert clips with `hvc-run stage=convert source=<folder of ASF/AMC/BVH> out=<file.h5>` "
           "and pass mocap_file=<file.h5>")
+
+
+def check_mocap_file(path: Path, name: str | None = None) -> Path:
+    """`path` when it is an HDF5 file with clips; else BadInputFile in one line, not h5py's
+    traceback (random bytes, a truncated copy, an empty file)."""
+    name = name or f"mocap file {path}"
+    if not path.exists():
+        raise MissingInputFile(f"{name} does not exist")
+    if not path.is_file():
+        raise BadInputFile(f"{name} is a directory, not an HDF5 file")
+    try:
+        with h5py.File(path, "r") as f:
+            clips = len(f.keys())
+    except OSError as error:
+        reason = str(error).split("(", 1)[-1].rstrip(")") if "(" in str(error) else str(error)
+        raise BadInputFile(f"{name} is not a readable HDF5 file ({reason}): truncated, or another kind of file") \
+            from None
+    if not clips:
+        raise BadInputFile(f"{name} holds no clips; `hvc-run stage=convert` writes a mocap file")
+    return path
 
 
 def clip_lengths(path: str | Path) -> dict[str, int]:

@@ -13,32 +13,35 @@ SVG(0) + Retrace (ContinuousLearner), query with a Wolpertinger-style learner
 (QueryLearner). `algorithm.updates_per_unroll` paces the learner against the actors. The x-axis of the paper's curves, transitions processed by the learner, is
 logged as `learner_steps`; env steps as `env_steps`.
 
-Checkpoints (agent, optimiser, target agent, counters, RNG states; not the replay, which
-refills) every `hl.checkpoint_seconds` and on exit; `resume=<run dir>` continues. A
+Checkpoints (agent, optimiser, target agent, counters, RNG states, where metrics.csv stood;
+not the replay, which refills): the first right after the random-policy episodes, then every
+`hl.checkpoint_seconds` and on exit, so a hard kill loses at most one interval.
+`resume=<run dir>` continues from the checkpoint, cutting metrics.csv back to it. A
 non-finite loss stops the run before the optimiser steps, so the exit checkpoint is good.
 """
 from __future__ import annotations
 
 import json
 import logging
-import os
 import signal
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
-from tqdm import tqdm
 
 from hvc.agents.network import AgentSpec, HighLevelAgent, RunningNormalizer
 from hvc.algorithms.hl_learners import ContinuousLearner, QueryLearner, pack_state, vtrace_update
 from hvc.envs.vector_env import VectorEnv
 from hvc.errors import ControllerUnavailable, HvcUserError, NonFiniteLoss
+from hvc.runtime.checkpoint import save_checkpoint
 from hvc.runtime.env_config import vector_env
 from hvc.runtime.episodes import EpisodeRecorder
-from hvc.runtime.metrics import MetricsLogger
+from hvc.runtime.metrics import continue_metrics
+from hvc.runtime.progress import RECENT_EPISODES, Progress
 from hvc.runtime.signals import raise_interrupt
 
 log = logging.getLogger(__name__)
@@ -208,6 +211,14 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     checkpoint = run_dir / "checkpoint.pt"
     state = load_checkpoint(checkpoint) if checkpoint.exists() else None
     resumed_at = int(state["counters"]["env_steps"]) if state else 0
+    if state is None and cfg.get("resume"):
+        log.warning("%s has no checkpoint (killed before its first one): starting it from env step 0, "
+                    "its metrics rewritten", run_dir)
+    if resumed_at >= int(cfg.total_steps):
+        log.warning("%s is complete: %d env steps done of total_steps=%d; pass a larger total_steps= to go on",
+                    run_dir, resumed_at, int(cfg.total_steps))
+        return {"env_steps": resumed_at, "learner_steps": int(state["counters"]["updates"]) * int(
+            cfg.algorithm.batch_size) * int(cfg.task.agent.unroll), "episodes": int(state["counters"]["episodes"])}
     envs = make_envs(cfg, seed=int(cfg.seed) + resumed_at)  # resumed: new episodes, not the first ones again
     spec, agent, learner = build_agent(cfg, envs)
     vision = spec.vision
@@ -244,115 +255,122 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         log.info("resumed from %s at env step %d (replay refills)", checkpoint, counters["env_steps"])
 
     def save() -> None:
-        tmp = checkpoint.with_suffix(".tmp")
-        torch.save({"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "counters": counters,
+        save_checkpoint({"agent": agent.state_dict(), "optimizer": optimizer.state_dict(), "counters": counters,
                     "spec": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(spec).items()},
                     **({"target_agent": learner.target.state_dict()} if learner is not None else {}),
                     "rng": json.dumps(rng.bit_generator.state),
-                    "torch_rng": torch.get_rng_state(), "update_credit": update_credit}, tmp)
-        os.replace(tmp, checkpoint)
+                    "torch_rng": torch.get_rng_state(), "update_credit": update_credit,
+                    "metrics": metrics.mark()}, checkpoint)
 
     gamma, entropy_cost = float(agent_cfg.gamma), float(cfg.algorithm.get("entropy_cost", 0.01))
     recorder = EpisodeRecorder.for_run(cfg, run_dir)
-    metrics = MetricsLogger(run_dir / "metrics.csv", tensorboard=True)
+    metrics, dropped = continue_metrics(run_dir / "metrics.csv", state, tensorboard=True)
+    if dropped:
+        log.info("metrics.csv: dropped %d rows logged after the checkpoint's env step %d", dropped,
+                 resumed_at if state else -1)
     E = envs.num_envs
     obs = envs.reset()
     lstm = agent.initial_state(E)
     prev_reward, first = np.zeros(E, np.float32), np.ones(E, np.float32)
     prev_action = np.zeros(E, np.int64) if discrete else np.zeros((E, spec.action_size), np.float32)
-    returns: list[float] = []
+    returns: list[float] = []  # since the last metrics row
+    recent = deque(maxlen=RECENT_EPISODES)  # what progress shows
     losses: dict[str, float] = {}
     updates_per_unroll = float(cfg.algorithm.updates_per_unroll)
     start, last_save, last_log = time.perf_counter(), time.monotonic(), counters["env_steps"]
     start_steps = counters["env_steps"]  # a resumed run's rate counts only its own steps
-    bar = tqdm(total=int(cfg.total_steps), initial=counters["env_steps"], desc="hl train", unit="step",
-               disable=None, mininterval=2.0)
+    progress = Progress("hl train", int(cfg.total_steps), counters["env_steps"], float(cfg.progress_seconds))
     previous_sigterm = signal.signal(signal.SIGTERM, raise_interrupt)  # `kill` saves a checkpoint too
     try:
-        if counters["env_steps"] == 0 and int(hl.random_episodes) > 0:
-            random_returns = _random_baseline(envs, int(hl.random_episodes), rng)
-            metrics.log(0, {"random_return": float(np.mean(random_returns))})
-            obs = envs.reset()
-        while counters["env_steps"] < int(cfg.total_steps):
-            seq = {k: [] for k in ("proprio", "task", "image", "prev_reward", "prev_action", "first", "action",
-                                   "log_mu", "reward", "discount", "new_action", "query")}
-            start_state = pack_state(lstm, hidden)
-            for _ in range(n):
-                seq["proprio"].append(obs["proprio"])
-                seq["task"].append(obs["task"])
-                if vision:
-                    seq["image"].append(obs["image"])
-                seq["prev_reward"].append(prev_reward.copy())
-                seq["prev_action"].append(prev_action.copy())
-                seq["first"].append(first.copy())
-                agent.normalizer.update(torch.from_numpy(np.concatenate([obs["proprio"], obs["task"]], -1)))
-                send, action, log_mu, lstm, query_action = act(agent, learner, obs, prev_reward, prev_action,
-                                                               first, lstm)
-                before = {k: v[0] for k, v in obs.items()}
-                obs, rewards, discounts, dones, infos = envs.step(send)
-                recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
-                new, in_force, prev_reward, next_action, first = carry(action, prev_action, rewards, dones, infos,
-                                                                       seen=send if clipped_actions else None)
-                if query:
-                    prev_query = np.where(new[:, None] > 0, query_action, prev_query)
-                    seq["query"].append(prev_query.copy())
-                seq["action"].append(in_force)
-                seq["log_mu"].append(log_mu)
-                seq["reward"].append(rewards)
-                seq["discount"].append(learning_discounts(discounts, dones))
-                seq["new_action"].append(new)
-                prev_action = next_action
-                for info in infos:
-                    if "episode_return" in info:
-                        returns.append(info["episode_return"])
-                        counters["episodes"] += 1
-                counters["env_steps"] += E
-                bar.update(E)
-            # the step after the unroll, for bootstrapping
-            tail = {"proprio": obs["proprio"], "task": obs["task"], "prev_reward": prev_reward,
-                    "prev_action": prev_action, "first": first}
-            for e in range(E):
-                fields = {k: np.stack([s[e] for s in seq[k]] + ([tail[k][e]] if k in tail else []))
-                          for k in ("proprio", "task", "prev_reward", "prev_action", "first")}
-                if vision:
-                    fields["image"] = np.stack([s[e] for s in seq["image"]] + [obs["image"][e]])
-                fields.update({k: np.stack([s[e] for s in seq[k]]) for k in
-                               ("action", "log_mu", "reward", "discount", "new_action") + (("query",) if query else ())})
-                replay.add(state=start_state[e], **fields)
-            if replay.size >= int(hl.min_replay_unrolls):
-                update_credit += updates_per_unroll * E  # per unroll added; fractions accumulate
-                torch.set_num_threads(learner_threads)
-                while update_credit >= 1.0:
-                    update_credit -= 1.0
-                    sample = replay.sample(batch, rng)
-                    try:
-                        losses = (vtrace_update(agent, optimizer, sample, gamma, entropy_cost, cfg.algorithm)
-                                  if discrete else learner.update(optimizer, sample, gamma))
-                    except NonFiniteLoss as error:  # raised before the step: the state saved below is good
-                        raise NonFiniteLoss(f"{error} at env step {counters['env_steps']}; the last good state "
-                                            f"is saved in {checkpoint}") from None
-                    counters["updates"] += 1
-                torch.set_num_threads(1)
-            if counters["env_steps"] - last_log >= int(cfg.log_every):
-                last_log = counters["env_steps"]
-                row = {"episodes": counters["episodes"],
-                       "steps_per_second": (counters["env_steps"] - start_steps) / (time.perf_counter() - start)}
-                if returns:
-                    row["episode_return"] = float(np.mean(returns))
-                    bar.set_postfix(ret=f"{row['episode_return']:.2f}")
-                    returns = []
-                if losses:
-                    row.update(losses)  # the latest update's
-                metrics.log(counters["env_steps"], row, learner_steps=counters["updates"] * batch * n)
-            if time.monotonic() - last_save > float(hl.checkpoint_seconds):
-                save()
-                last_save = time.monotonic()
+        with progress.closing():
+            if counters["env_steps"] == 0:
+                if int(hl.random_episodes) > 0:
+                    random_returns = _random_baseline(envs, int(hl.random_episodes), rng)
+                    metrics.log(0, {"random_return": float(np.mean(random_returns))})
+                    obs = envs.reset()
+                save()  # the first checkpoint: a kill from here on loses at most one interval
+            while counters["env_steps"] < int(cfg.total_steps):
+                seq = {k: [] for k in ("proprio", "task", "image", "prev_reward", "prev_action", "first", "action",
+                                       "log_mu", "reward", "discount", "new_action", "query")}
+                start_state = pack_state(lstm, hidden)
+                for _ in range(n):
+                    seq["proprio"].append(obs["proprio"])
+                    seq["task"].append(obs["task"])
+                    if vision:
+                        seq["image"].append(obs["image"])
+                    seq["prev_reward"].append(prev_reward.copy())
+                    seq["prev_action"].append(prev_action.copy())
+                    seq["first"].append(first.copy())
+                    agent.normalizer.update(torch.from_numpy(np.concatenate([obs["proprio"], obs["task"]], -1)))
+                    send, action, log_mu, lstm, query_action = act(agent, learner, obs, prev_reward, prev_action,
+                                                                   first, lstm)
+                    before = {k: v[0] for k, v in obs.items()}
+                    obs, rewards, discounts, dones, infos = envs.step(send)
+                    recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
+                    new, in_force, prev_reward, next_action, first = carry(action, prev_action, rewards, dones, infos,
+                                                                           seen=send if clipped_actions else None)
+                    if query:
+                        prev_query = np.where(new[:, None] > 0, query_action, prev_query)
+                        seq["query"].append(prev_query.copy())
+                    seq["action"].append(in_force)
+                    seq["log_mu"].append(log_mu)
+                    seq["reward"].append(rewards)
+                    seq["discount"].append(learning_discounts(discounts, dones))
+                    seq["new_action"].append(new)
+                    prev_action = next_action
+                    for info in infos:
+                        if "episode_return" in info:
+                            returns.append(info["episode_return"])
+                            recent.append(info["episode_return"])
+                            counters["episodes"] += 1
+                    counters["env_steps"] += E
+                # the step after the unroll, for bootstrapping
+                tail = {"proprio": obs["proprio"], "task": obs["task"], "prev_reward": prev_reward,
+                        "prev_action": prev_action, "first": first}
+                for e in range(E):
+                    fields = {k: np.stack([s[e] for s in seq[k]] + ([tail[k][e]] if k in tail else []))
+                              for k in ("proprio", "task", "prev_reward", "prev_action", "first")}
+                    if vision:
+                        fields["image"] = np.stack([s[e] for s in seq["image"]] + [obs["image"][e]])
+                    fields.update({k: np.stack([s[e] for s in seq[k]]) for k in
+                                   ("action", "log_mu", "reward", "discount", "new_action") + (("query",) if query else ())})
+                    replay.add(state=start_state[e], **fields)
+                if replay.size >= int(hl.min_replay_unrolls):
+                    update_credit += updates_per_unroll * E  # per unroll added; fractions accumulate
+                    torch.set_num_threads(learner_threads)
+                    while update_credit >= 1.0:
+                        update_credit -= 1.0
+                        sample = replay.sample(batch, rng)
+                        try:
+                            losses = (vtrace_update(agent, optimizer, sample, gamma, entropy_cost, cfg.algorithm)
+                                      if discrete else learner.update(optimizer, sample, gamma))
+                        except NonFiniteLoss as error:  # raised before the step: the state saved below is good
+                            raise NonFiniteLoss(f"{error} at env step {counters['env_steps']}; the last good state "
+                                                f"is saved in {checkpoint}") from None
+                        counters["updates"] += 1
+                    torch.set_num_threads(1)
+                if counters["env_steps"] - last_log >= int(cfg.log_every):
+                    last_log = counters["env_steps"]
+                    row = {"episodes": counters["episodes"],
+                           "steps_per_second": (counters["env_steps"] - start_steps) / (time.perf_counter() - start)}
+                    if returns:
+                        row["episode_return"] = float(np.mean(returns))
+                        returns = []
+                    if losses:
+                        row.update(losses)  # the latest update's
+                    metrics.log(counters["env_steps"], row, learner_steps=counters["updates"] * batch * n)
+                progress.update(counters["env_steps"], float(np.mean(recent)) if recent else None,
+                                counters["updates"] * batch * n)
+                if time.monotonic() - last_save > float(hl.checkpoint_seconds):
+                    save()
+                    last_save = time.monotonic()
     finally:
         signal.signal(signal.SIGTERM, previous_sigterm)
-        save()
-        bar.close()
-        metrics.close()
-        envs.close()
+        try:
+            save()
+        finally:
+            metrics.close()
+            envs.close()
     return {"env_steps": counters["env_steps"], "learner_steps": counters["updates"] * batch * n,
             "episodes": counters["episodes"]}
 

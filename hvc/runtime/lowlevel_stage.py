@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
-from tqdm import tqdm
 
 from hvc.config import ConfigError, group_config
 from hvc.errors import HvcUserError
@@ -26,6 +25,7 @@ from hvc.mocap.clip_sets import entries_of, resolve
 from hvc.mocap.source import find_mocap_file
 from hvc.provenance import run_commands
 from hvc.runtime.env_config import env_dicts
+from hvc.runtime.progress import Progress
 from hvc.runtime.signals import raise_interrupt
 
 log = logging.getLogger(__name__)
@@ -143,8 +143,8 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     ctx = mp.get_context("spawn")
     limit = int(cfg.lowlevel.workers) or len(jobs) or 1
     running: list[tuple] = []
-    bars = {str(out): tqdm(total=int(cfg.total_steps), desc=f"{entry.behaviour} {entry.id}", unit="step",
-                           position=k, disable=None, mininterval=2.0) for k, (entry, out, _) in enumerate(jobs)}
+    bars = {str(out): Progress(f"{entry.behaviour} {entry.id}", int(cfg.total_steps), _steps_done(out),
+                              float(cfg.progress_seconds), position=k) for k, (entry, out, _) in enumerate(jobs)}
     pending = list(jobs)
     failed = []
     previous = signal.signal(signal.SIGTERM, raise_interrupt)  # `kill` stops workers too
@@ -160,9 +160,9 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
                 progress = out / "progress.json"
                 if progress.exists():
                     try:
-                        steps = json.loads(progress.read_text())["env_steps"]
-                        bar = bars[str(out)]
-                        bar.update(max(0, steps - bar.n))
+                        done = json.loads(progress.read_text())
+                        bars[str(out)].update(int(done["env_steps"]), done.get("episode_return"),
+                                              done.get("learner_steps"))
                     except (ValueError, KeyError):
                         pass
                 if not proc.is_alive():
@@ -175,8 +175,9 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
             proc.terminate()
         for _, _, proc in running:
             proc.join(timeout=120)
-        for bar in bars.values():
-            bar.close()
+        for out, bar in bars.items():
+            bar.close("finished" if (Path(out) / "result.json").exists()
+                      else "failed" if any(out in f for f in failed) else "stopped")
         signal.signal(signal.SIGTERM, previous)
     if failed:
         raise RuntimeError("; ".join(failed))
@@ -190,6 +191,14 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     print(f"library={path}")
     return {"library": str(path), "experts": {f"{e.entry['behaviour']} ({e.entry['id']})": e.scores
                                              for e in library.experts}}  # one clip can give two entries
+
+
+def _steps_done(out: Path) -> int:
+    """A clip's env steps in an earlier attempt of this run (its progress.json), else 0."""
+    try:
+        return int(json.loads((out / "progress.json").read_text())["env_steps"])
+    except (OSError, ValueError, KeyError):
+        return 0
 
 
 def switching_entry(cfg: DictConfig):

@@ -21,6 +21,7 @@ from tqdm import tqdm
 from hvc.errors import HvcUserError
 from hvc.runtime.episodes import EpisodeRecorder
 from hvc.runtime.hl_train import act, build_agent, carry, load_checkpoint, make_envs, sees_clipped_actions
+from hvc.skills import skills_for_job
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,9 @@ def run_record(cfg: DictConfig, run_dir: Path) -> dict:
     torch.manual_seed(int(cfg.seed))  # the policy's samples: a seed gives the same episodes
     trained = trained_config(cfg)
     source = Path(cfg.from_run)
+    skills = skills_for_job(trained)
+    if skills is not None:
+        skills.write(run_dir)
     # this run's own record: the config it played with (the training run's, plus the above)
     played = OmegaConf.merge(trained, {"stage": "record", "from_run": str(source)})
     (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(played, resolve=True))

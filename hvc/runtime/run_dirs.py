@@ -4,15 +4,21 @@ the options it ran with, so that `resume=<run dir>` alone continues it as it was
 Runs live in `outputs/runs/<date>/<time>_<task>_<controller>` (conf/config.yaml); a run is
 "the same job" when its resolved config has the same stage, task, controller, clip set,
 body, algorithm and seed, and it can be continued when it left a checkpoint (`checkpoint.pt`,
-or `experts/` for the low level).
+or `experts/` for the low level) and no process writes to it now.
 """
 from __future__ import annotations
 
+import logging
+import shutil
 from pathlib import Path
 
 import yaml
 
 from hvc.config import GROUPS, ConfigError
+from hvc.provenance import COMMANDS_FILE
+from hvc.runtime.lock import LOCK_FILE, holder
+
+log = logging.getLogger(__name__)
 
 RUNS_ROOT = Path("outputs") / "runs"
 
@@ -37,7 +43,10 @@ def latest_run_dir(config: dict, current: Path, root: Path = RUNS_ROOT) -> Path:
         if not ((run / "checkpoint.pt").is_file() or (run / "experts").is_dir()):
             continue
         if _job(yaml.safe_load((run / "config_resolved.yaml").read_text()) or {}) == want:
-            return run
+            writer = holder(run)
+            if writer is None:
+                return run
+            log.info("resume=true: skipping %s, in use by %s", run, writer)
     job = " ".join(f"{k}={v}" for k, v in zip((*JOB_KEYS, "seed"), want))
     raise ConfigError(f"resume=true found no earlier run with a checkpoint of {job} under {root}/; "
                       f"pass resume=<run dir>")
@@ -73,3 +82,19 @@ def merge_overrides(saved: list[str], new: list[str]) -> list[str]:
 
 def save_overrides(run_dir: Path, overrides: list[str]) -> None:
     (run_dir / OVERRIDES_FILE).write_text(yaml.safe_dump([o for o in overrides if _key(o) != "resume"]))
+
+
+# What hvc-run writes into a run dir before the stage's own work (besides Hydra's .hydra/ and
+# the job's log): a dir holding no more is a stub of a command that failed before any work.
+BOOKKEEPING = {".hydra", LOCK_FILE, OVERRIDES_FILE, "config_resolved.yaml", COMMANDS_FILE}
+
+
+def remove_stub(run_dir: Path, log_file: str) -> bool:
+    """Removes `run_dir` when it holds nothing but bookkeeping and `log_file` (and its date dir
+    under RUNS_ROOT, when that is left empty); True if it did."""
+    if not run_dir.is_dir() or any(p.name not in BOOKKEEPING | {log_file} for p in run_dir.iterdir()):
+        return False
+    shutil.rmtree(run_dir)
+    if run_dir.parent.parent.resolve() == RUNS_ROOT.resolve() and not any(run_dir.parent.iterdir()):
+        run_dir.parent.rmdir()
+    return True
