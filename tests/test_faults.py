@@ -222,3 +222,19 @@ def test_a_typo_in_a_key_gets_a_suggestion_and_leaves_no_run_dir(tmp_path):
     lines = _error_lines(result)
     assert len(lines) == 1 and "did you mean fragment_len" in lines[0], lines
     assert not (tmp_path / "outputs").exists()
+
+
+def test_a_resume_goes_on_with_the_optimiser_state_and_counters_it_saved(tmp_path):
+    """Adam's moments and step count continue (a fresh optimiser would restart its bias
+    correction), and the counters go on from the checkpoint's rather than from zero."""
+    run = tmp_path / "run"
+    _hvc(*BALL, "total_steps=60", "hl.random_episodes=0", "task.time_limit=0.3", "hydra.run.dir=run", cwd=tmp_path,
+         check=0)
+    first = torch.load(run / "checkpoint.pt", weights_only=True)
+    _hvc(f"resume={run}", "total_steps=120", cwd=tmp_path, check=0)
+    second = torch.load(run / "checkpoint.pt", weights_only=True)
+    updates = second["counters"]["updates"] - first["counters"]["updates"]
+    assert first["counters"]["updates"] > 0 and updates > 0
+    adam_step = lambda state: int(state["optimizer"]["state"][0]["step"])  # noqa: E731
+    assert adam_step(second) == adam_step(first) + updates
+    assert second["counters"]["env_steps"] == 120 and second["counters"]["episodes"] > first["counters"]["episodes"] > 0
