@@ -453,3 +453,21 @@ def test_a_resume_may_change_an_option_of_the_runs_own_groups(tmp_path):
 
     with pytest.raises(ConfigError, match="continues one run"):  # every job of a sweep would write to it
         _with_resumed_options(["-m", f"resume={tmp_path}", "seed=0,1"])
+
+
+def test_recorded_query_episodes_keep_the_query_in_force(tmp_path):
+    """Fig. A.3 projects the trained query agent's queries beside the fragment keys: the
+    record holds each step's query, changing only where a new fragment was chosen."""
+    import numpy as np
+
+    path = _tiny_library(tmp_path / "lib.npz")
+    _run("stage=train", "controller=query", f"library={path}", "task.init_from_clips=false", "num_envs=1",
+         "total_steps=40", "hl.random_episodes=0", "hl.min_replay_unrolls=2", "algorithm.batch_size=2",
+         "hydra.run.dir=train", cwd=tmp_path)
+    _run("stage=record", "from_run=train", "record_episodes=2", "hydra.run.dir=rec", cwd=tmp_path)
+    for episode in sorted((tmp_path / "rec" / "episodes").glob("episode_*.npz")):
+        with np.load(episode) as ep:
+            query, new = ep["query"], ep["new_action"]
+        assert query.shape == (len(new), 36) and np.isfinite(query).all()
+        changed = np.flatnonzero(np.any(query[1:] != query[:-1], axis=1)) + 1
+        assert set(changed) <= set(np.flatnonzero(new)) and len(changed) > 0

@@ -1,7 +1,9 @@
 """Episode records for the analyses (fragment transitions, saliency): per step of env 0,
 the high-level action in force (fragment index, turning rate or behaviour), whether it
 was newly chosen, the reward, the proprioception and task input and, for vision tasks,
-the frame the agent saw: enough to replay the agent's LSTM over the episode."""
+the frame the agent saw: enough to replay the agent's LSTM over the episode. The query
+controller's episodes also keep the query in force (the paper's Fig. A.3 projects queries
+and fragment keys together)."""
 from __future__ import annotations
 
 import csv
@@ -27,7 +29,7 @@ class EpisodeRecorder:
         self.max_episodes = int(max_episodes)
         self.saved = 0
         self._steps: dict[str, list] = {"hl_action": [], "new_action": [], "reward": [], "image": [],
-                                        "proprio": [], "task": []}
+                                        "proprio": [], "task": [], "query": []}
 
     @classmethod
     def for_run(cls, cfg, run_dir: Path) -> "EpisodeRecorder":
@@ -44,8 +46,9 @@ class EpisodeRecorder:
     def active(self) -> bool:
         return self.saved < self.max_episodes
 
-    def add(self, obs_before: dict, reward: float, info: dict, done: bool) -> None:
-        """One step of env 0: the observation it acted on, then what the step returned."""
+    def add(self, obs_before: dict, reward: float, info: dict, done: bool, query: np.ndarray | None = None) -> None:
+        """One step of env 0: the observation it acted on, then what the step returned, and
+        for the query controller the query in force (in the controller's normalised key space)."""
         if not self.active:
             return
         self._steps["hl_action"].append(float(info.get("hl_action", np.nan)))
@@ -55,6 +58,8 @@ class EpisodeRecorder:
         self._steps["task"].append(np.asarray(obs_before["task"], np.float32))
         if "image" in obs_before:
             self._steps["image"].append(np.asarray(obs_before["image"], np.uint8))
+        if query is not None:
+            self._steps["query"].append(np.asarray(query, np.float32))
         if done:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             arrays = {k: np.asarray(v) for k, v in self._steps.items() if v}

@@ -306,12 +306,13 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                                                                    first, lstm)
                     before = {k: v[0] for k, v in obs.items()}
                     obs, rewards, discounts, dones, infos = envs.step(send)
-                    recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
                     new, in_force, prev_reward, next_action, first = carry(action, prev_action, rewards, dones, infos,
                                                                            seen=send if clipped_actions else None)
                     if query:
                         prev_query = np.where(new[:, None] > 0, query_action, prev_query)
                         seq["query"].append(prev_query.copy())
+                    recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]),
+                                 query=prev_query[0] if query else None)
                     seq["action"].append(in_force)
                     seq["log_mu"].append(log_mu)
                     seq["reward"].append(rewards)

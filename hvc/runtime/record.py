@@ -68,12 +68,15 @@ def run_record(cfg: DictConfig, run_dir: Path) -> dict:
         prev_action = np.zeros(1, np.int64) if spec.discrete else np.zeros((1, spec.action_size), np.float32)
         clipped = sees_clipped_actions(learner)
         returns: list[float] = []
+        query_in_force = None  # the query controller's query, kept while its fragment plays
         with tqdm(total=recorder.max_episodes, desc="record", unit="episode", disable=None) as bar:
             while recorder.active:
-                send, action, _, lstm, _ = act(agent, learner, obs, prev_reward, prev_action, first, lstm)
+                send, action, _, lstm, query = act(agent, learner, obs, prev_reward, prev_action, first, lstm)
                 before = {k: v[0] for k, v in obs.items()}
                 obs, rewards, _, dones, infos = envs.step(send)
-                recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]))
+                if query is not None and (query_in_force is None or infos[0].get("new_action", True)):
+                    query_in_force = query[0]
+                recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]), query=query_in_force)
                 _, _, prev_reward, prev_action, first = carry(action, prev_action, rewards, dones, infos,
                                                               seen=send if clipped else None)
                 if "episode_return" in infos[0]:
