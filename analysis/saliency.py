@@ -21,7 +21,7 @@ from hvc.agents.network import AgentSpec, HighLevelAgent
 
 
 def load_agent(run_dir: Path) -> HighLevelAgent:
-    state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    state = torch.load(run_dir / "checkpoint.pt", weights_only=True, map_location="cpu")
     spec = AgentSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["spec"].items()})
     agent = HighLevelAgent(spec)
     agent.load_state_dict(state["agent"])

@@ -75,6 +75,10 @@ def _job(cfg: DictConfig, job_dir: Path) -> None:
         options = merge_overrides(saved_overrides(run_dir), given)
         cfg = _composed(cfg, given, options)
     resolve_parallelism(cfg)
+    if cfg.stage == "train":
+        from hvc.runtime.device import resolve_device
+
+        resolve_device(cfg)
     check_inputs(cfg, run_dir if cfg.get("resume") else None)
     with locked(run_dir):
         if run_dir != job_dir:  # resume=true: the log goes on in the run it found

@@ -135,7 +135,8 @@ class HighLevelAgent(nn.Module):
         self.value = mlp([value_in, *spec.value_mlp])
 
     def initial_state(self, batch: int) -> tuple[torch.Tensor, ...]:
-        z = lambda n: torch.zeros(1, batch, n)  # noqa: E731
+        device = self.policy_out.weight.device
+        z = lambda n: torch.zeros(1, batch, n, device=device)  # noqa: E731
         return (z(self.spec.lstm_size), z(self.spec.lstm_size), z(self.spec.policy_lstm), z(self.spec.policy_lstm))
 
     def forward(self, proprio: torch.Tensor, task: torch.Tensor, prev_reward: torch.Tensor,

@@ -24,7 +24,7 @@ def pack_state(state: tuple[torch.Tensor, ...], hidden: int) -> np.ndarray:
     """The agent's LSTM states as one [batch, 4, hidden] array for the replay (split_state undoes it)."""
     out = np.zeros((state[0].shape[1], 4, hidden), np.float32)
     for k, s in enumerate(state):
-        out[:, k, :s.shape[-1]] = s[0].numpy()
+        out[:, k, :s.shape[-1]] = s[0].cpu().numpy()
     return out
 
 
@@ -102,7 +102,7 @@ class ContinuousLearner:
         (pi = N(0.9, 0.2) against mu = N(0.9, 0.9) at a clip to 1: 4.0 against 0.68)."""
         dist = self.distribution(self.agent, policy_out)
         action = dist.sample()
-        return action.numpy().astype(np.float32), dist.log_prob(action).sum(-1).numpy()
+        return action.cpu().numpy().astype(np.float32), dist.log_prob(action).sum(-1).cpu().numpy()
 
     def clip(self, action):
         """What the env and Q see of a raw sample (numpy or torch)."""
@@ -170,7 +170,7 @@ class QueryLearner(ContinuousLearner):
     def __init__(self, agent, algorithm, controller, space, query_controller):
         super().__init__(agent, algorithm, controller, space)
         self.selector = query_controller
-        self.keys = torch.from_numpy(query_controller.keys)
+        self.keys = torch.from_numpy(query_controller.keys).to(next(agent.parameters()).device)
         self.temperature = float(controller.get("temperature", 1.0))
         self.rng = np.random.default_rng(0)
 
@@ -179,16 +179,17 @@ class QueryLearner(ContinuousLearner):
         """(fragment index to run, query, selected key, log mu of the query) per env."""
         dist = self.distribution(self.agent, policy_out)
         queries = torch.clamp(dist.sample(), self.low, self.high)
-        log_mu = dist.log_prob(queries).sum(-1).numpy()
+        log_mu = dist.log_prob(queries).sum(-1).cpu().numpy()
+        host_queries = queries.cpu().numpy().astype(np.float32)
         indices = []
         for e in range(queries.shape[0]):
-            candidates = self.selector.nearest(queries[e].numpy())
+            candidates = self.selector.nearest(host_queries[e])
             keys = self.keys[candidates]
             q = self.agent.values(h[e].expand(len(candidates), -1), keys)
-            p = torch.softmax(q / self.temperature, 0).numpy().astype(np.float64)
+            p = torch.softmax(q / self.temperature, 0).cpu().numpy().astype(np.float64)
             indices.append(int(candidates[self.rng.choice(len(candidates), p=p / p.sum())]))
         indices = np.asarray(indices)
-        return indices, queries.numpy().astype(np.float32), self.keys[indices].numpy(), log_mu
+        return indices, host_queries, self.keys[indices].cpu().numpy(), log_mu
 
     def update(self, optimizer, b: dict, gamma: float) -> dict[str, float]:
         out, h, t_out, t_h = self.replay_unrolls(b)

@@ -38,6 +38,7 @@ from hvc.algorithms.hl_learners import ContinuousLearner, QueryLearner, pack_sta
 from hvc.envs.vector_env import VectorEnv
 from hvc.errors import ControllerUnavailable, HvcUserError, NonFiniteLoss
 from hvc.runtime.checkpoint import save_checkpoint
+from hvc.runtime.device import torch_device
 from hvc.runtime.env_config import vector_env
 from hvc.runtime.episodes import EpisodeRecorder
 from hvc.runtime.metrics import continue_metrics
@@ -94,15 +95,16 @@ class Unrolls:
         self.position = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
-    def sample(self, batch: int, rng: np.random.Generator) -> dict[str, torch.Tensor]:
+    def sample(self, batch: int, rng: np.random.Generator, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+        """`batch` unrolls, time-major, moved to `device` once."""
         idx = rng.integers(0, self.size, batch)
         out = {}
         for name in ("proprio", "task", "image", "prev_reward", "prev_action", "first", "action", "log_mu",
                      "reward", "discount", "new_action", "query"):
             array = getattr(self, name)
             if array is not None:
-                out[name] = torch.from_numpy(np.swapaxes(array[idx], 0, 1).copy())
-        out["state"] = torch.from_numpy(self.state[idx].copy())
+                out[name] = torch.from_numpy(np.swapaxes(array[idx], 0, 1).copy()).to(device)
+        out["state"] = torch.from_numpy(self.state[idx].copy()).to(device)
         return out
 
 
@@ -118,7 +120,7 @@ def make_envs(cfg: DictConfig, seed: int | None = None) -> VectorEnv:
 
 def load_checkpoint(path: Path) -> dict:
     """A stage=train checkpoint, refusing one from before input normalisation in one line."""
-    state = torch.load(path, weights_only=True)
+    state = torch.load(path, weights_only=True, map_location="cpu")  # a GPU run records and resumes anywhere
     if "normalizer.mean" not in state["agent"]:
         raise HvcUserError(f"{path} was written by an older hvc (before input normalisation and the "
                            f"sigmoid-bounded sigma) and cannot be used; start a new run")
@@ -128,16 +130,17 @@ def load_checkpoint(path: Path) -> dict:
     return state
 
 
-def build_agent(cfg: DictConfig, envs: VectorEnv) -> tuple[AgentSpec, HighLevelAgent, object | None]:
-    """The agent for the envs' controller and its learner (None for the discrete controllers,
-    whose V-trace update is a function): what training and recording both act with."""
+def build_agent(cfg: DictConfig, envs: VectorEnv, device: torch.device | str = "cpu"
+                ) -> tuple[AgentSpec, HighLevelAgent, object | None]:
+    """The agent for the envs' controller on `device` and its learner (None for the discrete
+    controllers, whose V-trace update is a function): what training and recording both act with."""
     agent_cfg = cfg.task.agent
     space = envs.action_space
     spec = AgentSpec(proprio_size=envs.observation_sizes["proprio"], task_size=envs.observation_sizes["task"],
                      action_size=space.n if space.discrete else space.size, discrete=space.discrete,
                      lstm_size=int(agent_cfg.lstm_size), value_mlp=tuple(agent_cfg.value_mlp),
                      vision="image" in envs.observation_sizes, critic_takes_action=not space.discrete)
-    agent = HighLevelAgent(spec)
+    agent = HighLevelAgent(spec).to(device)
     if cfg.controller.name == "query":
         from hvc.controllers.query import QueryController
 
@@ -154,16 +157,17 @@ def act(agent: HighLevelAgent, learner, obs: dict, prev_reward: np.ndarray, prev
     """One batched high-level step: (what the envs get, the action, log mu, new LSTM state,
     the query or None). The envs get the selected key's fragment for `query`, the clipped
     action for the other continuous controllers (the action stays the raw sample), else the action."""
+    device = agent.policy_out.weight.device
+    tensor = lambda x: torch.from_numpy(x[None]).to(device)  # noqa: E731
     with torch.no_grad():
         logits, h_step, lstm = agent(
-            torch.from_numpy(obs["proprio"][None]).float(), torch.from_numpy(obs["task"][None]).float(),
-            torch.from_numpy(prev_reward[None]), torch.from_numpy(prev_action[None]), lstm,
-            image=torch.from_numpy(obs["image"][None]) if "image" in obs else None,
-            done=torch.from_numpy(first[None]))
+            tensor(obs["proprio"]).float(), tensor(obs["task"]).float(), tensor(prev_reward), tensor(prev_action),
+            lstm, image=tensor(obs["image"]) if "image" in obs else None, done=tensor(first))
         if agent.spec.discrete:
             dist = torch.distributions.Categorical(logits=logits[0])
             action = dist.sample()
-            return action.numpy(), action.numpy(), dist.log_prob(action).numpy(), lstm, None
+            action, log_mu = action.cpu().numpy(), dist.log_prob(action).cpu().numpy()
+            return action, action, log_mu, lstm, None
         if isinstance(learner, QueryLearner):
             send, query_action, action, log_mu = learner.act(logits[0], h_step[0])
             return send, action, log_mu, lstm, query_action
@@ -220,7 +224,8 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         return {"env_steps": resumed_at, "learner_steps": int(state["counters"]["updates"]) * int(
             cfg.algorithm.batch_size) * int(cfg.task.agent.unroll), "episodes": int(state["counters"]["episodes"])}
     envs = make_envs(cfg, seed=int(cfg.seed) + resumed_at)  # resumed: new episodes, not the first ones again
-    spec, agent, learner = build_agent(cfg, envs)
+    device = torch_device(cfg.get("device", "cpu"))
+    spec, agent, learner = build_agent(cfg, envs, device)
     vision = spec.vision
     discrete = spec.discrete
     query = isinstance(learner, QueryLearner)
@@ -250,6 +255,8 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
             learner.steps = counters["updates"]  # keeps the target refresh schedule
         rng.bit_generator.state = json.loads(state["rng"])
         torch.set_rng_state(state["torch_rng"])
+        if device.type == "cuda" and "cuda_rng" in state:
+            torch.cuda.set_rng_state(state["cuda_rng"], device)
         if query:
             learner.rng = np.random.default_rng([int(cfg.seed), resumed_at])
         log.info("resumed from %s at env step %d (replay refills)", checkpoint, counters["env_steps"])
@@ -260,6 +267,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                     **({"target_agent": learner.target.state_dict()} if learner is not None else {}),
                     "rng": json.dumps(rng.bit_generator.state),
                     "torch_rng": torch.get_rng_state(), "update_credit": update_credit,
+                    **({"cuda_rng": torch.cuda.get_rng_state(device)} if device.type == "cuda" else {}),
                     "metrics": metrics.mark()}, checkpoint)
 
     gamma, entropy_cost = float(agent_cfg.gamma), float(cfg.algorithm.get("entropy_cost", 0.01))
@@ -301,7 +309,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                     seq["prev_reward"].append(prev_reward.copy())
                     seq["prev_action"].append(prev_action.copy())
                     seq["first"].append(first.copy())
-                    agent.normalizer.update(torch.from_numpy(np.concatenate([obs["proprio"], obs["task"]], -1)))
+                    agent.normalizer.update(torch.from_numpy(np.concatenate([obs["proprio"], obs["task"]], -1)).to(device))
                     send, action, log_mu, lstm, query_action = act(agent, learner, obs, prev_reward, prev_action,
                                                                    first, lstm)
                     before = {k: v[0] for k, v in obs.items()}
@@ -341,7 +349,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                     torch.set_num_threads(learner_threads)
                     while update_credit >= 1.0:
                         update_credit -= 1.0
-                        sample = replay.sample(batch, rng)
+                        sample = replay.sample(batch, rng, device)
                         try:
                             losses = (vtrace_update(agent, optimizer, sample, gamma, entropy_cost, cfg.algorithm)
                                       if discrete else learner.update(optimizer, sample, gamma))
