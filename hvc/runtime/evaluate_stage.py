@@ -6,6 +6,7 @@ per-step tracking reward, next to the open-loop baseline on the same clip. One l
 clip on stdout, a table in `metrics.csv`, and with `video=true` a video of each expert
 beside its reference (kinematic replay) from the same start. `library=` takes an `.npz` or a
 `stage=lowlevel` run dir, whose checkpoints are read as they stand (training may go on).
+Then the library's composability: its controller under random high-level actions.
 """
 from __future__ import annotations
 
@@ -107,7 +108,34 @@ def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
             if cfg.video:
                 record_expert_video(env, expert, run_dir / f"expert_{expert.entry['behaviour']}_{clip}.mp4")
             env.close()
-    return {"library": str(path), "clips": results}
+        composed = composability(cfg, metrics)
+    return {"library": str(path), "clips": results, **({"composability": composed} if composed else {})}
+
+
+def composability(cfg: DictConfig, metrics: MetricsLogger) -> dict | None:
+    """The library's skills under random high-level actions (hvc.runtime.composability): one
+    line for the steps until a fall, and one per clip-to-clip switch for fragments."""
+    from hvc.errors import ControllerUnavailable
+    from hvc.runtime.composability import cold_switching, composability_config
+
+    name = str(cfg.clips.name)
+    controller = name if name in ("steerable", "switching") else "fragments"
+    try:
+        scores = cold_switching(composability_config(cfg, controller), int(cfg.episodes), int(cfg.seed))
+    except ControllerUnavailable as error:  # e.g. a stage=lowlevel run dir still training: no library file yet
+        print(f"compose skipped: {error}")
+        return None
+    print(f"compose controller={controller} clips={name} episodes={scores['episodes']} "
+          f"mean_steps={scores['mean_steps']:.1f} median_steps={scores['median_steps']:.0f} "
+          f"fall_rate={scores['fall_rate']:.2f} cap={scores['cap']}")
+    row = {f"compose_{k}": scores[k] for k in ("mean_steps", "median_steps", "fall_rate")}
+    for pair, switch in scores["switches"].items():
+        a, b = pair.split("->")
+        print(f"compose_switch from={a} to={b} survived={switch['survived']:.2f} of {switch['of']} "
+              f"(next {scores['horizon']} steps)")
+        row[f"compose_survived/{pair}"] = switch["survived"]
+    metrics.log(0, row)
+    return scores
 
 
 def record_expert_video(env, expert, path: Path) -> Path:

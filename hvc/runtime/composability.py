@@ -1,0 +1,87 @@
+"""Composability of a set of skills: how long the body stays up when a high level that knows
+nothing switches between them (issue 23's measure, the bar a high-level agent starts from).
+
+The task's env (go_to_target unless the config names another non-tracking task) is driven by
+the skills' controller with uniformly random high-level actions, from the task's own random
+starts: steps until a fall (a terminating step; an episode that reaches the time limit counts
+as its full length), and for the fragment controllers a clip-to-clip table: of the switches
+from a fragment of clip a to one of clip b, the share after which the body stays up for the
+next `horizon` control steps (about one gait cycle) or until the episode's time limit.
+"""
+from __future__ import annotations
+
+from collections import defaultdict
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from hvc.config import group_config
+
+HORIZON_SECONDS = 1.0  # about one gait cycle of the run clips (0.4-1.2 s)
+
+
+def composability_config(cfg: DictConfig, controller: str) -> DictConfig:
+    """`cfg` with `controller` and one env on a task with random starts (tracking is not one)."""
+    out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))  # not struct: controllers differ in keys
+    out.controller = group_config("controller", controller)
+    out.num_envs = out.in_process_envs = 1
+    if out.task.kind == "tracking":
+        out.task = group_config("task", "go_to_target")
+    return out
+
+
+def cold_switching(cfg: DictConfig, episodes: int, seed: int = 0) -> dict:
+    """Steps until a fall under random high-level actions over `episodes` episodes, and the
+    clip-to-clip survival table for fragment controllers. `cfg` as composability_config gives."""
+    from hvc.runtime.env_config import vector_env
+
+    envs = vector_env(cfg, seed)
+    try:
+        if envs.controller is None:
+            raise RuntimeError(envs.why_no_controller)
+        cap = int(round(float(cfg.task.time_limit) / float(cfg.task.control_timestep)))
+        horizon = int(round(HORIZON_SECONDS / float(cfg.task.control_timestep)))
+        clip_of = _clip_of_fragment(envs)
+        rng = np.random.default_rng(seed)
+        lengths, falls = [], 0
+        tried, survived = defaultdict(int), defaultdict(int)
+        pending: list[tuple[tuple[str, str], int]] = []  # (switch, step by which the body must still be up)
+        previous, step = None, 0
+        envs.reset()
+        while len(lengths) < episodes:
+            _, _, discounts, dones, infos = envs.step(envs.random_actions(rng))
+            info, step = infos[0], step + 1
+            if clip_of is not None and info.get("new_action"):  # chosen for this step: its fall counts
+                current = clip_of[int(info["hl_action"])]
+                if previous is not None:
+                    pending.append(((previous, current), step + horizon))
+                previous = current
+            fell = bool(dones[0]) and discounts[0] == 0.0
+            still = []
+            for pair, until in pending:
+                if fell or dones[0] or step >= until:  # settled: a fall, or up to its horizon or the time limit
+                    tried[pair] += 1
+                    survived[pair] += not fell
+                else:
+                    still.append((pair, until))
+            pending = still
+            if dones[0]:
+                lengths.append(min(int(info["episode_length"]), cap))
+                falls += fell
+                previous, step = None, 0
+    finally:
+        envs.close()
+    lengths = np.asarray(lengths)
+    return {"controller": str(cfg.controller.name), "episodes": len(lengths), "cap": cap, "horizon": horizon,
+            "mean_steps": float(lengths.mean()), "median_steps": float(np.median(lengths)),
+            "fall_rate": float(falls / len(lengths)),
+            "switches": {f"{a}->{b}": {"survived": survived[(a, b)] / tried[(a, b)], "of": tried[(a, b)]}
+                         for a, b in sorted(tried)}}
+
+
+def _clip_of_fragment(envs) -> list[str] | None:
+    """Fragment index -> the behaviour of its clip, for the fragment controllers."""
+    if envs.controller not in ("fragments", "query") or envs.skills is None:
+        return None
+    experts = envs.skills.library.experts
+    return [f"{experts[f.clip].entry['behaviour']}" for f in envs.skills.fragments]
