@@ -51,6 +51,7 @@ def vtrace_update(agent, optimizer, b, gamma: float, entropy_cost: float, algori
     return {k: float(v.detach()) for k, v in losses.items()}
 
 
+SIGMA_CLIP = (0.1, 1.0)  # the Gaussian policies' sigma bounds when a controller config names none
 MEAN_RAW_LIMIT = 2.0  # |pre-tanh mean| beyond which the policy loss pulls it back (tanh(2) = 0.96)
 
 
@@ -72,7 +73,7 @@ class ContinuousLearner:
         self.low, self.high = float(space.low), float(space.high)
         if controller.get("steering_range") is not None:
             self.low, self.high = (float(v) for v in controller.steering_range)
-        self.sigma_clip = tuple(controller.get("sigma_clip", (0.05, 1.0)))
+        self.sigma_clip = tuple(controller.get("sigma_clip", SIGMA_CLIP))
         self.entropy_cost = float(algorithm.get("entropy_cost", 1e-5))
         self.lam = float(algorithm.get("retrace_lambda", 1.0))
         self.period = int(algorithm.get("target_update_period", 100))
