@@ -142,6 +142,9 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     second = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     assert second["counters"]["env_steps"] >= 160 > first["counters"]["env_steps"]
     assert second["counters"]["updates"] > first["counters"]["updates"]
+    learned = [k for k, v in first["agent"].items() if not k.startswith("normalizer.")
+               and not torch.equal(v, second["agent"][k])]
+    assert any(k.startswith("policy_out.") for k in learned) and any(k.startswith("value.") for k in learned)
     commands = (run_dir / "commands.log").read_text().splitlines()  # both invocations, in order
     assert len(commands) == 2 and "total_steps=80" in commands[0] and f"resume={run_dir}" in commands[1]
 
