@@ -61,3 +61,32 @@ def test_controller_trains_on_task(task, controller, libraries, tmp_path):
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert state["counters"]["updates"] > 0
     assert all(torch.isfinite(v).all() for v in state["agent"].values() if v.is_floating_point())
+
+
+@pytest.mark.parametrize("controller", CONTROLLERS)
+def test_each_controllers_action_reaches_the_body(controller, libraries):
+    """From the same start, two different high-level actions move the body differently and the
+    same action moves it the same way: the choice, not noise, is what the body follows."""
+    from hvc.runtime.env_config import vector_env
+
+    library = libraries[controller]
+    cfg = compose(["task=go_to_target", f"controller={controller}", "num_envs=1", "in_process_envs=1",
+                   "task.init_from_clips=false", *([f"library={library}"] if library else [])])
+
+    def body_after(action, steps=6):
+        envs = vector_env(cfg, seed=3)
+        try:
+            envs.reset()
+            for _ in range(steps):
+                obs, *_ = envs.step([action])
+            return obs["proprio"][0]
+        finally:
+            envs.close()
+
+    space = vector_env(cfg, seed=3)
+    space.close()
+    space = space.action_space
+    a, b = ((0, 1) if space.discrete else
+            (np.full(space.size, space.low, np.float32), np.full(space.size, space.high, np.float32)))
+    np.testing.assert_array_equal(body_after(a), body_after(a))
+    assert np.abs(body_after(a) - body_after(b)).max() > 1e-3
