@@ -16,6 +16,11 @@ from hvc.analysis.returns import episode_returns
 
 
 def plot(out: Path, run_dirs: list[Path], points: int = 60) -> Path:
+    draw(run_dirs, points).savefig(out, dpi=110)
+    return out
+
+
+def draw(run_dirs: list[Path], points: int = 60):
     """Each run's return per episode, averaged over about 1/`points` of its rows (weighted by
     the episodes in each row), so that long runs read as curves rather than spikes."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
@@ -37,8 +42,7 @@ def plot(out: Path, run_dirs: list[Path], points: int = 60) -> Path:
         ax.grid(alpha=0.3)
     axes[0].legend()
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    return out
+    return fig
 
 
 if __name__ == "__main__":

@@ -34,6 +34,19 @@ def test_plot_reads_a_gzipped_metrics_file(tmp_path):
     assert plot(tmp_path / "c.png", [path]).stat().st_size > 1000
 
 
+def test_the_plotted_curve_is_the_return_per_episode_with_the_random_line(tmp_path):
+    from plot_training import draw
+
+    path = tmp_path / "metrics_run.csv"
+    _metrics().to_csv(path, index=False)
+    by_transitions, by_env_steps = draw([path]).axes
+    curve, random = by_transitions.lines
+    assert list(curve.get_xdata()) == [1000, 2000] and list(by_env_steps.lines[0].get_xdata()) == [100, 200]
+    assert list(curve.get_ydata()) == pytest.approx([0.0, 25.0])  # 3 episodes of 0, then one of 100: 100 / 4
+    assert list(random.get_ydata()) == [1.0, 1.0] and random.get_linestyle() == "--"
+    assert curve.get_label() == "metrics_run"
+
+
 def test_a_resumed_run_counts_each_episode_once():
     """A resumed run logs again from its checkpoint (here 100), superseding rows 200 and 300."""
     first = [(100, 3, 0.0), (200, 4, 100.0), (300, 6, 0.0)]
