@@ -252,12 +252,50 @@ def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
     return num_envs * rate.pop("single"), rate
 
 
+def ray_actors_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> tuple[float, float]:
+    """(VectorEnv's env steps/s with worker processes, RayVectorEnv's with one local Ray actor per
+    env), interleaved in blocks like vector_env_sps; Ray on this machine (ray.init, loopback)."""
+    from omegaconf import OmegaConf
+
+    from hvc.envs.ray_actors import RayVectorEnv, connect
+    from hvc.envs.vector_env import VectorEnv
+    from hvc.runtime.env_config import env_dicts
+    from hvc.skills import skills_for_job
+
+    cfg = compose(overrides)
+    task, body, render = env_dicts(cfg)
+    controller = OmegaConf.to_container(cfg.controller, resolve=True)
+    connect(num_cpus=num_envs)
+    variants = {}
+    rng = np.random.default_rng(0)
+    try:
+        variants["local"] = VectorEnv(task, body, render, num_envs, seed=0, controller=controller,
+                                      skills=skills_for_job(cfg), in_process=0)
+        variants["ray"] = RayVectorEnv(task, body, render, num_envs, seed=0, controller=controller,
+                                       skills=skills_for_job(cfg))
+        elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
+        for envs in variants.values():
+            envs.reset()
+        for _ in range(5):
+            for key, envs in variants.items():
+                t0 = time.perf_counter()
+                while time.perf_counter() - t0 < seconds / 5:
+                    envs.step(envs.random_actions(rng))
+                    steps[key] += envs.num_envs
+                elapsed[key] += time.perf_counter() - t0
+    finally:
+        for envs in variants.values():
+            envs.close()
+    return steps["local"] / elapsed["local"], steps["ray"] / elapsed["ray"]
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
     parser.add_argument("--seconds", type=float, default=3.0, help="per measurement")
     parser.add_argument("--no-composer", action="store_true", help="skip dm_control composer (slow resets)")
     parser.add_argument("--no-render", action="store_true")
+    parser.add_argument("--no-ray", action="store_true", help="skip the Ray actors line (needs hvc[ray])")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)
     lines = []
@@ -290,6 +328,10 @@ def main(argv=None) -> None:
         ceiling, rates = vector_env_sps(overrides + ["task=go_to_target"], args.seconds)
         lines.append(f"bench vector_env {' '.join(overrides)} num_envs=2 ceiling_sps={ceiling:.0f} " + " ".join(
             f"in_process={k}:sps={v:.0f},ratio={v / ceiling:.2f}" for k, v in rates.items()))
+    if not args.no_ray:
+        local, remote = ray_actors_sps(["controller=fragments", "task=go_to_target"], args.seconds)
+        lines.append(f"bench ray_actors controller=fragments num_envs=2 workers_sps={local:.0f} ray_sps={remote:.0f} "
+                     f"ratio={remote / local:.2f} goal=0.8")
     print()
     for line in lines:
         print(line)

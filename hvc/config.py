@@ -145,6 +145,8 @@ def validate(cfg: DictConfig) -> None:
                           f"or auto")
     if cfg.stage not in STAGES:
         raise ConfigError(f"unknown stage {cfg.stage!r}; allowed: {', '.join(STAGES)}")
+    if cfg.get("actors", "local") not in ("local", "ray"):
+        raise ConfigError(f"actors={cfg.actors} is not a backend; allowed: local, ray")
     if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool):
         raise ConfigError(f"seed={cfg.seed!r} must be an integer")
     if not isinstance(cfg.video, bool):

@@ -6,8 +6,12 @@ import sys
 
 
 def test_bench_prints_every_measurement_line():
+    import importlib.util
+
+    ray = importlib.util.find_spec("ray") is not None
     result = subprocess.run([sys.executable, "-m", "hvc.bench", "--tasks", "go_to_target", "--seconds", "0.2",
-                             "--no-composer", "--no-render"], capture_output=True, text=True, timeout=600)
+                             "--no-composer", "--no-render", *([] if ray else ["--no-ray"])],
+                            capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     out = result.stdout
     assert re.search(r"bench task=go_to_target ceiling_sps=\d+ hvc_sps=\d+", out)
@@ -19,3 +23,6 @@ def test_bench_prints_every_measurement_line():
     for body in ("body=rolling_ball controller=end_to_end", "controller=fragments"):
         assert re.search(rf"bench vector_env {body} num_envs=2 ceiling_sps=\d+ in_process=0:sps=\d+,ratio=[\d.]+ "
                          rf"in_process=1:sps=\d+,ratio=[\d.]+ in_process=2:sps=\d+,ratio=[\d.]+", out)
+    if ray:
+        assert re.search(r"bench ray_actors controller=fragments num_envs=2 workers_sps=\d+ ray_sps=\d+ "
+                         r"ratio=[\d.]+ goal=0.8", out)

@@ -54,8 +54,16 @@ def vector_env(cfg: DictConfig, seed: int | None = None):
         skills, why_not = None, str(error)
     else:
         why_not = None
-    envs = VectorEnv(task, body, render, int(cfg.num_envs), seed=int(cfg.seed if seed is None else seed),
-                     controller=_plain(cfg.controller), skills=skills, in_process=int(cfg.in_process_envs))
+    seed = int(cfg.seed if seed is None else seed)
+    if cfg.get("actors", "local") == "ray":  # envs in Ray actors, on this machine or a cluster
+        from hvc.envs.ray_actors import RayVectorEnv, connect
+
+        connect(cfg.ray.address, cfg.ray.num_cpus)
+        envs = RayVectorEnv(task, body, render, int(cfg.num_envs), seed=seed, controller=_plain(cfg.controller),
+                            skills=skills, cpus_per_actor=float(cfg.ray.cpus_per_actor))
+    else:
+        envs = VectorEnv(task, body, render, int(cfg.num_envs), seed=seed, controller=_plain(cfg.controller),
+                         skills=skills, in_process=int(cfg.in_process_envs))
     if why_not:
         envs.why_no_controller = why_not
     return envs
