@@ -54,9 +54,9 @@ GROUPS: dict[str, tuple[list[str], list[str], list[str] | None]] = {
                        ["tests/test_controllers.py", "tests/test_clip_sets.py"], None),
     # checkpoint contents and their loading; the resume block inside hl_train.train is left out
     # (each of its hundreds of mutants would rerun whole training runs)
-    "resume": (["hvc/runtime/replay.py", "hvc/runtime/hl_train.py", "hvc/algorithms/svg0_retrace.py"],
+    "resume": (["hvc/algorithms/replay.py", "hvc/runtime/hl_train.py", "hvc/algorithms/svg0_retrace.py"],
                ["tests/test_resume.py", "tests/test_lowlevel.py"],
-               ["hvc.runtime.hl_train.x_load_checkpoint*", "hvc.runtime.replay.*state_dict*",
+               ["hvc.runtime.hl_train.x_load_checkpoint*", "hvc.algorithms.replay.*state_dict*",
                 "hvc.algorithms.svg0_retrace.*state_dict*"]),
     "conversion": (["hvc/mocap/convert.py"], ["tests/test_mocap_convert.py"], None),
 }

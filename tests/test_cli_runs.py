@@ -150,7 +150,7 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
 
 
 def test_metrics_logger_writes_csv_rows_and_tensorboard_events(tmp_path):
-    from hvc.runtime.metrics import MetricsLogger
+    from hvc.io.metrics import MetricsLogger
 
     with MetricsLogger(tmp_path / "metrics.csv", tensorboard=True) as metrics:
         metrics.log(10, {"a": 1.5, "b": 2}, learner_steps=320)

@@ -178,7 +178,7 @@ def test_each_bad_file_kind_gets_one_line_naming_it(tmp_path, kind):
 def test_a_full_disk_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
     import os
 
-    from hvc.runtime.checkpoint import DiskFull, save_checkpoint
+    from hvc.io.checkpoint import DiskFull, save_checkpoint
 
     path = tmp_path / "checkpoint.pt"
     save_checkpoint({"step": 1}, path)

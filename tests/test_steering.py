@@ -12,7 +12,7 @@ pytestmark = pytest.mark.skipif(not SHARED_CLIPS.is_dir(), reason=f"offline CMU 
 @pytest.fixture(scope="module")
 def cycle():
     from hvc.config import compose
-    from hvc.lowlevel.tracking import build_reference
+    from hvc.mocap.reference import build_reference
     from hvc.mocap.clip_sets import select_entry
     from hvc.mocap.source import find_mocap_file
 

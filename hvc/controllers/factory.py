@@ -39,7 +39,7 @@ def _behaviours(lib) -> list:
     before they were) rebuilt from the entries it was trained on."""
     if lib.behaviours:
         return lib.behaviours
-    from hvc.lowlevel.tracking import build_reference
+    from hvc.mocap.reference import build_reference
     from hvc.mocap.source import find_mocap_file
 
     entries = lib.meta.get("switching_entries")

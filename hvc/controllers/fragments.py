@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from hvc.controllers.base import ActionSpace
-from hvc.lowlevel.evaluation import policy_observation
+from hvc.lowlevel.library import policy_observation
 from hvc.mocap.clip_sets import Fragment
 
 

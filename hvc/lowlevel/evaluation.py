@@ -25,11 +25,6 @@ class EpisodeStats:
     energy: dict[str, float]  # mean weighted energy per reward term (empty if the task has none)
 
 
-def policy_observation(obs: dict) -> np.ndarray:
-    """What a low-level expert sees: proprioception then the time input."""
-    return np.concatenate([obs["proprio"], obs["task"]])
-
-
 def open_loop_action(obs: dict, logic) -> np.ndarray:
     target = logic.reference.joints[min(logic.t + 1, logic.reference.num_steps - 1)]
     return np.clip(logic.pose_to_actuation(target), -1, 1)

@@ -32,6 +32,10 @@ REFERENCE_FIELDS = ("joints", "joints_velocity", "position", "quaternion", "velo
 SHIPPED_DIR = Path(__file__).resolve().parents[1] / "data"
 
 
+def policy_observation(obs: dict) -> np.ndarray:
+    """What a low-level expert sees (`Expert.act`'s input): proprioception then the time input."""
+    return np.concatenate([obs["proprio"], obs["task"]])
+
 
 @dataclass
 class Expert:

@@ -17,35 +17,13 @@ from dm_control import mjcf
 from hvc.envs.task_logic import TaskLogic, ContactTermination
 from hvc.lowlevel.reward import TrackingFeatures, TrackingReward
 from hvc.mocap.clips import root_heading
-from hvc.mocap.reference import Reference, find_cycle, from_clip, loop_cycle
+from hvc.mocap.reference import Reference, build_reference
 from hvc.mocap.steering import turn_from
 from hvc.rotations import quat_conj, quat_mul, quat_to_mat, rot_z
 
 # Bodies allowed to touch the ground: feet and hands (the paper's termination rule).
 ALLOWED_CONTACT_BODIES = ("lfoot", "ltoes", "rfoot", "rtoes", "lhand", "lfingers", "lthumb",
                           "rhand", "rfingers", "rthumb")
-
-
-def build_reference(entry: Mapping[str, Any], mocap_file: str, cycle_repeats: int = 4,
-                    cycle_blend: int = 4) -> Reference:
-    """The reference for one clip-set entry: its frame range, looped if it is cyclic."""
-    from hvc.mocap.clips import load_clip
-
-    clip = load_clip(mocap_file, entry["id"])
-    start, end = int(entry.get("start") or 0), entry.get("end")
-    if not entry.get("cyclic"):
-        return from_clip(clip, start, None if end is None else int(end))
-    whole = from_clip(clip)
-    segment = whole.joints[start:end]
-    cycle = entry.get("cycle")
-    if cycle is None:  # find the most periodic window (0.4-1.2 s covers run and walk cycles)
-        lo, hi = int(round(0.4 / whole.dt)), int(round(1.2 / whole.dt))
-        s, length = find_cycle(segment, lo, min(hi, len(segment) - cycle_blend - 1), margin=cycle_blend)
-        cycle = (start + s, length)
-    steps = entry.get("steps")
-    repeats = max(cycle_repeats, -(-int(steps) // int(cycle[1])) if steps else 0)
-    looped = loop_cycle(whole, int(cycle[0]), int(cycle[1]), blend=cycle_blend, repeats=repeats)
-    return looped.segment(0, int(steps)) if steps else looped
 
 
 def heading_frame_vectors(quaternion: np.ndarray, root_vectors: np.ndarray) -> np.ndarray:

@@ -29,13 +29,14 @@ import torch
 from torch import nn
 
 from hvc.agents.mlp import GaussianPolicy, NumpyPolicy, QNetwork
+from hvc.algorithms.replay import UnrollReplay
 from hvc.algorithms.svg0_retrace import SVG0Retrace
 from hvc.envs.fast_env import FastEnv
 from hvc.errors import NonFiniteLoss
-from hvc.lowlevel.evaluation import evaluate, policy_observation
-from hvc.runtime.checkpoint import save_checkpoint
-from hvc.runtime.metrics import continue_metrics
-from hvc.runtime.replay import UnrollReplay
+from hvc.io.checkpoint import save_checkpoint
+from hvc.io.metrics import continue_metrics
+from hvc.lowlevel.evaluation import evaluate
+from hvc.lowlevel.library import policy_observation
 
 
 def reference_dataset(env: FastEnv, walks: int = 10) -> tuple[np.ndarray, np.ndarray]:

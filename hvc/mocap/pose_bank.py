@@ -9,6 +9,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from hvc.mocap.clips import root_heading
+from hvc.mocap.reference import build_reference
 from hvc.rotations import quat_mul, rot_z, yaw_quat, yaw_rotate
 
 
@@ -43,8 +44,6 @@ class PoseBank:
 
     @classmethod
     def from_entries(cls, entries: Iterable[Mapping], mocap_file: str) -> "PoseBank":
-        from hvc.lowlevel.tracking import build_reference
-
         return cls.from_references(build_reference(e, mocap_file) for e in entries)
 
     def write(self, i: int, qpos: np.ndarray, qvel: np.ndarray, root_qpos: int, root_dof: int,

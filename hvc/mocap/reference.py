@@ -9,10 +9,11 @@ repetition where the previous one ended (position and heading carried over).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any, Mapping
 
 import numpy as np
 
-from hvc.mocap.clips import root_heading
+from hvc.mocap.clips import load_clip, root_heading
 from hvc.rotations import quat_mul, rot_z, yaw_quat
 
 
@@ -117,3 +118,23 @@ def loop_cycle(ref: Reference, start: int, length: int, blend: int, repeats: int
                      joints_velocity=tile(joints_velocity), position=np.concatenate(positions),
                      quaternion=np.concatenate(quats), velocity=np.concatenate(vels),
                      angular_velocity=tile(ref.angular_velocity[idx]), end_effectors=tile(ee), phase=phase)
+
+
+def build_reference(entry: Mapping[str, Any], mocap_file: str, cycle_repeats: int = 4,
+                    cycle_blend: int = 4) -> Reference:
+    """The reference for one clip-set entry: its frame range, looped if it is cyclic."""
+    clip = load_clip(mocap_file, entry["id"])
+    start, end = int(entry.get("start") or 0), entry.get("end")
+    if not entry.get("cyclic"):
+        return from_clip(clip, start, None if end is None else int(end))
+    whole = from_clip(clip)
+    segment = whole.joints[start:end]
+    cycle = entry.get("cycle")
+    if cycle is None:  # find the most periodic window (0.4-1.2 s covers run and walk cycles)
+        lo, hi = int(round(0.4 / whole.dt)), int(round(1.2 / whole.dt))
+        s, length = find_cycle(segment, lo, min(hi, len(segment) - cycle_blend - 1), margin=cycle_blend)
+        cycle = (start + s, length)
+    steps = entry.get("steps")
+    repeats = max(cycle_repeats, -(-int(steps) // int(cycle[1])) if steps else 0)
+    looped = loop_cycle(whole, int(cycle[0]), int(cycle[1]), blend=cycle_blend, repeats=repeats)
+    return looped.segment(0, int(steps)) if steps else looped

@@ -15,12 +15,11 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from hvc.lowlevel.evaluation import (evaluate, evaluate_open_loop, policy_observation, steering_response,
-                                     switching_transitions)
 from hvc.errors import HvcUserError
-from hvc.lowlevel.library import ExpertLibrary, shipped_library
+from hvc.io.metrics import MetricsLogger
+from hvc.lowlevel.evaluation import evaluate, evaluate_open_loop, steering_response, switching_transitions
+from hvc.lowlevel.library import ExpertLibrary, policy_observation, shipped_library
 from hvc.runtime.env_config import env_dicts
-from hvc.runtime.metrics import MetricsLogger
 
 
 STEERING_RATE_COUNT = 7  # commanded rates, evenly over the tracking task's turn_rates (training range)

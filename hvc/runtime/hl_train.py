@@ -37,11 +37,11 @@ from hvc.agents.network import AgentSpec, HighLevelAgent, RunningNormalizer
 from hvc.algorithms.hl_learners import ContinuousLearner, QueryLearner, pack_state, vtrace_update
 from hvc.envs.vector_env import VectorEnv
 from hvc.errors import ControllerUnavailable, HvcUserError, NonFiniteLoss
-from hvc.runtime.checkpoint import save_checkpoint
+from hvc.io.checkpoint import save_checkpoint
+from hvc.io.metrics import continue_metrics
 from hvc.runtime.device import torch_device
 from hvc.runtime.env_config import vector_env
 from hvc.runtime.episodes import EpisodeRecorder
-from hvc.runtime.metrics import continue_metrics
 from hvc.runtime.progress import RECENT_EPISODES, Progress
 from hvc.runtime.signals import raise_interrupt
 

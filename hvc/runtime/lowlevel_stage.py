@@ -237,7 +237,7 @@ def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path, 
 
     from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
     from hvc.lowlevel.library import Expert, ExpertLibrary, provenance
-    from hvc.lowlevel.tracking import build_reference
+    from hvc.mocap.reference import build_reference
 
     experts, steps, behaviours = [], [], []
     for i, entry in enumerate(entries):

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
+from hvc.io.metrics import MetricsLogger
 from hvc.mocap.clip_sets import entries_of, fragments, resolve, select_entry
 from hvc.mocap.source import find_mocap_file
 from hvc.runtime.env_config import env_dicts
-from hvc.runtime.metrics import MetricsLogger
 
 
 def mocap_file_of(cfg: DictConfig) -> Path:

@@ -17,9 +17,9 @@ from tqdm import tqdm
 
 from hvc.envs.fast_env import FastEnv
 from hvc.envs.render import CameraRenderer
+from hvc.io.metrics import MetricsLogger
 from hvc.runtime.env_config import env_dicts, vector_env
 from hvc.runtime.episodes import EpisodeRecorder, write_fragment_table
-from hvc.runtime.metrics import MetricsLogger
 from hvc.runtime.video import write_video
 
 log = logging.getLogger(__name__)

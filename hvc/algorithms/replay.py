@@ -3,6 +3,8 @@
 Stored batch-major in preallocated numpy arrays (a ring); `sample` returns time-major
 torch tensors. An unroll cut short by the end of an episode is padded and masked.
 `state_dict` / `load_state_dict` let a resumed run keep its replay.
+It lives beside the learner whose `Batch` it fills (svg0_retrace), below every trainer
+that uses it (the low-level expert trainer, hvc.lowlevel.train).
 """
 from __future__ import annotations
 

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Mapping
 
-from hvc.runtime.checkpoint import write_atomically
+from hvc.io.checkpoint import write_atomically
 
 COLUMNS = ("env_steps", "learner_steps", "wall_time", "key", "value")
 
