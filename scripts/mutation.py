@@ -43,7 +43,7 @@ EQUIVALENT = RESULTS / "equivalent.toml"
 
 # name: (files to mutate, fast test files, mutant-name globs or None for all mutants of the files)
 GROUPS: dict[str, tuple[list[str], list[str], list[str] | None]] = {
-    "reward": (["hvc/lowlevel/reward.py"], ["tests/test_tracking_reward.py"], None),
+    "reward": (["hvc/envs/tracking_reward.py"], ["tests/test_tracking_reward.py"], None),
     "vtrace": (["hvc/algorithms/vtrace.py"], ["tests/test_vtrace.py"], None),
     "retrace": (["hvc/algorithms/retrace.py"], ["tests/test_retrace.py", "tests/test_lowlevel.py"], None),
     "svg0": (["hvc/algorithms/svg0_retrace.py"], ["tests/test_lowlevel.py"], None),

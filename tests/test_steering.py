@@ -129,7 +129,7 @@ def _straight_under_a_left_turn(*overrides: str, **task_updates):
 
 def test_each_steered_cycle_starts_from_the_body_heading():
     """Whatever the body did in a cycle, the next cycle's reference starts where it faces."""
-    from hvc.lowlevel.reward import quat_log_norm
+    from hvc.envs.tracking_reward import quat_log_norm
     from hvc.rotations import quat_conj, quat_mul
 
     for reanchor in (True, False):
@@ -173,7 +173,7 @@ def test_lean_tilts_the_root_into_the_turn_by_the_centripetal_angle(cycle):
 
 
 def test_heading_termination_fails_a_body_that_does_not_turn():
-    from hvc.lowlevel.tracking import heading_error
+    from hvc.envs.tracking import heading_error
 
     failed = {}
     for threshold in (None, 0.3):
@@ -193,7 +193,7 @@ def test_heading_termination_fails_a_body_that_does_not_turn():
 
 @pytest.mark.parametrize("repeat", [0.0, 0.5, 1.0])
 def test_turn_rate_repeat_holds_rates_across_cycles(repeat):
-    from hvc.lowlevel.steerable import SteerableTrackingLogic
+    from hvc.envs.steerable_tracking import SteerableTrackingLogic
 
     logic = SteerableTrackingLogic.__new__(SteerableTrackingLogic)  # only the rate draw, no env
     logic.turn_rates, logic.cycles, logic.repeat = (-1.5, 1.5), 8, repeat

@@ -119,7 +119,7 @@ def test_pretraining_labels_follow_each_episodes_own_walk(switching_env):
 
 
 def test_each_behaviour_of_a_walk_starts_from_the_body_heading(switching_env):
-    from hvc.lowlevel.reward import quat_log_norm
+    from hvc.envs.tracking_reward import quat_log_norm
     from hvc.mocap.clips import root_heading
     from hvc.rotations import quat_conj, quat_mul
 

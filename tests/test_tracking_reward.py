@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from hvc.config import compose
-from hvc.lowlevel.reward import TrackingFeatures, TrackingReward, energies, quat_log_norm
+from hvc.envs.tracking_reward import TrackingFeatures, TrackingReward, energies, quat_log_norm
 
 PAPER = dict(compose([]).reward)
 

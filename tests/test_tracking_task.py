@@ -163,7 +163,7 @@ def test_looped_cycle_is_continuous_at_the_seam(run_env):
 
 def test_pose_error_ignores_position_and_heading_but_not_tilt(run_env):
     """The deviation termination looks only at what the egocentric policy can observe."""
-    from hvc.lowlevel.tracking import pose_error
+    from hvc.envs.tracking import pose_error
     from hvc.rotations import quat_mul, yaw_quat
 
     logic, data, model = run_env.layout.logic, run_env.data, run_env.model

@@ -30,7 +30,7 @@ class FloorTask(composer.Task):
 
     dm_control's own tracking task (reference_pose.tracking) loads its clips through
     the HDF5 loader at construction and steps through composer; our tracking logic
-    (hvc.lowlevel.tracking) runs on the fast path instead, so this task only has to
+    (hvc.envs.tracking) runs on the fast path instead, so this task only has to
     build the model and mirror the contact bookkeeping of the other tasks.
     """
 

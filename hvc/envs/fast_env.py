@@ -20,7 +20,10 @@ import numpy as np
 from hvc.envs import render as render_lib
 from hvc.envs.builders import build_composer_env
 from hvc.envs.observations import Proprioception
+from hvc.envs.steerable_tracking import SteerableTrackingLogic
+from hvc.envs.switching_tracking import SwitchingTrackingLogic
 from hvc.envs.task_logic import LOGIC_BY_KIND, TaskLogic
+from hvc.envs.tracking import TrackingLogic
 
 
 @dataclass
@@ -40,11 +43,11 @@ def layout_from_composer(env, task: Mapping[str, Any], body: Mapping[str, Any]) 
     """Captures the composer env's current compiled model (call after env.reset())."""
     kind = task["kind"]
     if kind == "tracking" and (task.get("clip") or {}).get("switching"):
-        from hvc.lowlevel.switching_task import SwitchingTrackingLogic as logic_class
+        logic_class = SwitchingTrackingLogic
     elif kind == "tracking" and (task.get("clip") or {}).get("steer"):
-        from hvc.lowlevel.steerable import SteerableTrackingLogic as logic_class
-    elif kind == "tracking":  # motion-capture tracking lives with the low level
-        from hvc.lowlevel.tracking import TrackingLogic as logic_class
+        logic_class = SteerableTrackingLogic
+    elif kind == "tracking":
+        logic_class = TrackingLogic
     elif kind in LOGIC_BY_KIND:
         logic_class = LOGIC_BY_KIND[kind]
     else:

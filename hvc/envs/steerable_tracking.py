@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hvc.lowlevel.tracking import TrackingLogic
+from hvc.envs.tracking import TrackingLogic
 from hvc.mocap.reference import cycle_steps
 from hvc.mocap.steering import steer_cycle
 

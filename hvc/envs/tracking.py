@@ -15,7 +15,7 @@ import numpy as np
 from dm_control import mjcf
 
 from hvc.envs.task_logic import TaskLogic, ContactTermination
-from hvc.lowlevel.reward import TrackingFeatures, TrackingReward
+from hvc.envs.tracking_reward import TrackingFeatures, TrackingReward
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference, build_reference
 from hvc.mocap.steering import turn_from

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hvc.lowlevel.tracking import TrackingLogic
+from hvc.envs.tracking import TrackingLogic
 from hvc.mocap.reference import build_reference
 from hvc.mocap.switching import MAX_ACCEL, markov_reference
 
