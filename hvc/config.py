@@ -7,6 +7,7 @@ value with the allowed ones.
 from __future__ import annotations
 
 import os
+import warnings
 
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -99,6 +100,39 @@ def _cores() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
+CPUS_ENV = "HVC_CPUS"  # a user's own cap on the cores of each job (e.g. on a shared machine)
+# conf/hydra/launcher/ presets carry the names of the plugins' own configs, so that one flag selects
+# them (hydra/launcher=joblib); Hydra 1.3 merges such a file onto the plugin's schema and warns that it
+# will stop doing so (it still does in 1.3; pyproject pins hydra-core<1.4): not a user's concern.
+warnings.filterwarnings("ignore", message=r"\s*'hydra/launcher/(joblib|submitit_local|submitit_slurm|ray)' is "
+                                          r"validated against ConfigStore schema", category=UserWarning)
+
+
+def job_cores() -> int:
+    """The cores this job may use (resolve_parallelism's docstring says how they are found)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    cores = _cores()
+    in_sweep = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    launcher = HydraConfig.get().get("launcher") if in_sweep else None
+    if launcher is not None:
+        jobs = launcher.get("n_jobs")  # joblib: this many jobs side by side on this machine
+        if isinstance(jobs, int) and not isinstance(jobs, bool):
+            cores = max(1, cores // (jobs if jobs > 0 else max(1, cores + 1 + jobs)))  # -1: one per core
+        cpus = launcher.get("cpus_per_task")  # submitit: the CPUs the job asked for
+        if cpus is None:
+            cpus = OmegaConf.select(launcher, "ray.remote.num_cpus", default=None)  # ray: the task's CPUs
+        if isinstance(cpus, (int, float)) and not isinstance(cpus, bool) and cpus >= 1:
+            cores = min(cores, int(cpus))
+    limit = os.environ.get(CPUS_ENV, "").strip()
+    if limit:
+        if not limit.isdigit() or int(limit) < 1:
+            raise ConfigError(f"{CPUS_ENV}={limit!r} must be a positive integer (the cores a job may use)")
+        cores = min(cores, int(limit))
+    return cores
+
+
 def resolve_parallelism(cfg: DictConfig) -> None:
     """`num_envs`, `in_process_envs` and `torch_threads` set to auto become numbers, so run
     dirs record them.
@@ -111,10 +145,20 @@ def resolve_parallelism(cfg: DictConfig) -> None:
     process (90 us each) than in two workers. Acting is batched, so more envs cost little more
     per step and decorrelate the data: 300k steps of go_to_target took 3 minutes with 8 envs
     against 4.6 with 2, and the last tenth's return was 78, 799 and 57 for seeds 0-2 against
-    43, 66 and 3.5 (random: about 40)."""
+    43, 66 and 3.5 (random: about 40).
+
+    "Cores" are this job's share of the machine, so that jobs a launcher runs side by side
+    (conf/hydra/launcher/) do not oversubscribe it with envs, worker processes and torch
+    threads. They start from the cores the process may run on (its affinity mask, which
+    SLURM's cgroups and `taskset` narrow); in a sweep's job the launcher's own config
+    (hydra.launcher) then says its share: joblib's n_jobs=k runs k jobs at once here, so each
+    takes cores // k (at least 1; k <= 0 counts as joblib does, -1 = one job per core);
+    submitit's cpus_per_task and the Ray launcher's ray.remote.num_cpus cap it at the CPUs the
+    job asked for; and the environment variable HVC_CPUS, when set, caps it too. Explicit
+    num_envs= and torch_threads= are kept as given."""
     cheap = not cfg.body.humanoid and not cfg.task.vision
     if cfg.num_envs == "auto":
-        cfg.num_envs = CHEAP_BODY_ENVS if cheap else _cores()
+        cfg.num_envs = CHEAP_BODY_ENVS if cheap else job_cores()
     if cfg.in_process_envs == "auto":
         cfg.in_process_envs = cfg.num_envs if cheap else 1
     if cfg.in_process_envs > cfg.num_envs:
@@ -124,7 +168,7 @@ def resolve_parallelism(cfg: DictConfig) -> None:
         # The learner's updates run while the worker envs wait for their next step, so on a
         # vision task the ResNet's convs can take every core (gaps: 500 against 300 transitions/s
         # on 2 cores). Without vision the ops are small (LSTMs and MLPs at batch 32).
-        cfg.torch_threads = _cores() if cfg.task.vision else 1
+        cfg.torch_threads = job_cores() if cfg.task.vision else 1
 
 
 def validate(cfg: DictConfig) -> None:
