@@ -221,6 +221,7 @@ def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
     hits every variant alike."""
     from omegaconf import OmegaConf
 
+    from hvc.controllers.factory import Drive
     from hvc.envs.vector_env import VectorEnv
     from hvc.runtime.env_config import env_dicts
     from hvc.skills import skills_for_job
@@ -232,8 +233,8 @@ def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
     rng = np.random.default_rng(0)
     try:
         for key, n, in_process in [("single", 1, 1)] + [(k, num_envs, k) for k in range(num_envs + 1)]:
-            variants[key] = VectorEnv(task, body, render, n, seed=0, controller=controller,
-                                      skills=skills_for_job(cfg), in_process=in_process)
+            variants[key] = VectorEnv(task, body, render, n, seed=0, drive=Drive(controller, skills_for_job(cfg)),
+                                      in_process=in_process)
         elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
         for envs in variants.values():
             envs.reset()
@@ -257,6 +258,7 @@ def ray_actors_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
     env), interleaved in blocks like vector_env_sps; Ray on this machine (ray.init, loopback)."""
     from omegaconf import OmegaConf
 
+    from hvc.controllers.factory import Drive
     from hvc.envs.ray_actors import RayVectorEnv, connect
     from hvc.envs.vector_env import VectorEnv
     from hvc.runtime.env_config import env_dicts
@@ -269,10 +271,9 @@ def ray_actors_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
     variants = {}
     rng = np.random.default_rng(0)
     try:
-        variants["local"] = VectorEnv(task, body, render, num_envs, seed=0, controller=controller,
-                                      skills=skills_for_job(cfg), in_process=0)
-        variants["ray"] = RayVectorEnv(task, body, render, num_envs, seed=0, controller=controller,
-                                       skills=skills_for_job(cfg))
+        variants["local"] = VectorEnv(task, body, render, num_envs, seed=0, drive=Drive(controller, skills_for_job(cfg)),
+                                      in_process=0)
+        variants["ray"] = RayVectorEnv(task, body, render, num_envs, seed=0, drive=Drive(controller, skills_for_job(cfg)))
         elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
         for envs in variants.values():
             envs.reset()

@@ -28,6 +28,7 @@ def test_envs_stepped_in_the_main_process_match_worker_envs(controller):
     from omegaconf import OmegaConf
 
     from hvc.config import compose
+    from hvc.controllers.factory import Drive
     from hvc.skills import resolve_skills
 
     task, body, render = plain_cfg("task=go_to_target")
@@ -37,7 +38,7 @@ def test_envs_stepped_in_the_main_process_match_worker_envs(controller):
     runs = []
     for in_process in (0, 2):
         rng = np.random.default_rng(1)
-        with VectorEnv(task, body, render, num_envs=3, seed=7, controller=ctrl, skills=skills,
+        with VectorEnv(task, body, render, num_envs=3, seed=7, drive=Drive(ctrl, skills) if ctrl else None,
                        in_process=in_process) as env:
             assert len(env._procs) == 3 - in_process
             obs, steps = env.reset(), []

@@ -1,9 +1,32 @@
 """Builds the configured controller for an env from the job's skills (hvc.skills)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Mapping
 
+from hvc.controllers.base import ControlledEnv
 from hvc.errors import ControllerUnavailable
+
+
+@dataclass(frozen=True)
+class Drive:
+    """How an env is driven through the configured controller: what runtime hands each env
+    worker (picklable: the controller's config and the job's skills), so that envs never build
+    controllers themselves. `drive(env)` -> (ControlledEnv, None), or (None, the reason the
+    controller cannot be built)."""
+
+    controller: Mapping[str, Any]
+    skills: Any = None
+
+    @property
+    def name(self) -> str:
+        return self.controller["name"]
+
+    def __call__(self, env):
+        try:
+            return ControlledEnv(env, build_controller(self.controller, env, self.skills)), None
+        except (ControllerUnavailable, FileNotFoundError) as error:
+            return None, str(error)
 
 
 def build_controller(controller: Mapping[str, Any], env, skills=None):

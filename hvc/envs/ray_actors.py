@@ -41,10 +41,10 @@ class _Host(_EnvHost):
     """An actor's env host; Ray actors expose methods, not attributes. Arrays from the object
     store are read-only views; the experts keep scratch buffers, so the actor takes its own copy."""
 
-    def __init__(self, task, body, render_settings, seed: int, controller, skills):
+    def __init__(self, task, body, render_settings, seed: int, drive):
         import copy
 
-        super().__init__(task, body, render_settings, seed, controller, copy.deepcopy(skills))
+        super().__init__(task, body, render_settings, seed, copy.deepcopy(drive))
 
     def get_spec(self) -> dict:
         return self.spec
@@ -54,15 +54,14 @@ class RayVectorEnv:
     """`num_envs` envs, one per Ray actor, stepped together; auto-resets finished episodes."""
 
     def __init__(self, task: Mapping[str, Any], body: Mapping[str, Any], render_settings: Mapping[str, Any] | None,
-                 num_envs: int, seed: int = 0, controller: Mapping[str, Any] | None = None, skills=None,
-                 cpus_per_actor: float = 1.0):
+                 num_envs: int, seed: int = 0, drive=None, cpus_per_actor: float = 1.0):
         ray = _ray()
         self.task_name, self.num_envs, self.closed = task["name"], num_envs, False
         host = ray.remote(num_cpus=cpus_per_actor)(_Host)
         plain = lambda d: None if d is None else dict(d)  # noqa: E731
-        shared_skills = ray.put(skills)  # once into the object store, not once per actor
-        self._actors = [host.remote(dict(task), dict(body), plain(render_settings), seed + i, plain(controller),
-                                    shared_skills) for i in range(num_envs)]
+        shared_drive = ray.put(drive)  # with its skills, once into the object store, not once per actor
+        self._actors = [host.remote(dict(task), dict(body), plain(render_settings), seed + i, shared_drive)
+                        for i in range(num_envs)]
         spec = self._get([self._actors[0].get_spec.remote()])[0]
         self.action_size = spec["action_size"]
         self.action_low, self.action_high = spec["action_low"], spec["action_high"]
@@ -70,7 +69,7 @@ class RayVectorEnv:
         self.action_space = spec["action_space"]
         self.controller = spec["controller"]
         self.why_no_controller = spec["why_not"]
-        self.skills = skills
+        self.skills = getattr(drive, "skills", None)
 
     def _get(self, futures: list) -> list:
         ray = _ray()

@@ -22,6 +22,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from hvc.envs.spaces import ActionSpace
+
 _POLL_SECONDS = 1.0
 
 
@@ -29,32 +31,21 @@ class WorkerError(RuntimeError):
     pass
 
 
-def _driven(env, controller, skills):
-    """The env driven through the configured controller, or None with the reason it can't be."""
-    from hvc.controllers.base import ControlledEnv
-    from hvc.controllers.factory import ControllerUnavailable, build_controller
-
-    try:
-        return ControlledEnv(env, build_controller(controller, env, skills)), None
-    except (ControllerUnavailable, FileNotFoundError) as error:
-        return None, str(error)
-
-
 class _EnvHost:
     """One env, driven through its controller when one is configured: what a worker process
-    serves, or what the main process steps itself (VectorEnv's `in_process` envs)."""
+    serves, or what the main process steps itself (VectorEnv's `in_process` envs). `drive`
+    (hvc.controllers.factory.Drive, from runtime; None: raw body actions) builds the controller."""
 
-    def __init__(self, task, body, render_settings, seed: int, controller, skills):
-        from hvc.controllers.base import ActionSpace
+    def __init__(self, task, body, render_settings, seed: int, drive):
         from hvc.envs.fast_env import FastEnv
 
         self.env = env = FastEnv.build(task, body, render_settings, seed=seed)
-        self.driven, why_not = _driven(env, controller, skills) if controller else (None, None)
+        self.driven, why_not = drive(env) if drive else (None, None)
         space = self.driven.action_space if self.driven else ActionSpace(
             discrete=False, size=env.action_size, low=float(env.action_low.min()), high=float(env.action_high.max()))
         self.spec = {"action_size": env.action_size, "action_low": env.action_low, "action_high": env.action_high,
                      "observation_sizes": env.observation_sizes, "action_space": space,
-                     "controller": controller["name"] if self.driven else None, "why_not": why_not}
+                     "controller": drive.name if self.driven else None, "why_not": why_not}
 
     def reset(self):
         return self.driven.reset() if self.driven else self.env.reset()
@@ -78,10 +69,10 @@ class _EnvHost:
         self.env.close()
 
 
-def _worker(conn, index: int, task, body, render_settings, seed: int, controller, skills) -> None:
+def _worker(conn, index: int, task, body, render_settings, seed: int, drive) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        host = _EnvHost(task, body, render_settings, seed, controller, skills)
+        host = _EnvHost(task, body, render_settings, seed, drive)
         conn.send(("ready", host.spec))
         while True:
             command, payload = conn.recv()
@@ -109,9 +100,10 @@ class VectorEnv:
 
     `step(actions)` returns stacked observations, rewards, discounts, dones and a list of
     per-env info dicts holding `episode_return`/`episode_length` when an episode ended.
-    With a `controller` config, each env is driven through it (hvc.controllers) with the
-    job's `skills` (hvc.skills: resolved once, sent to each worker) and the actions are
-    high-level ones (used only when the controller asks: `new_action`).
+    With a `drive` (hvc.controllers.factory.Drive: the controller config and the job's skills,
+    resolved once and sent to each worker), each env is driven through its controller and the
+    actions are high-level ones (used only when the controller asks: `new_action`). `skills`
+    is the job's skills, for whoever acts on these envs (runtime sets it).
 
     The last `in_process` envs run in this process (after the workers have been sent their
     actions, so both overlap); the others, envs 0 .. num_envs - in_process - 1, in workers.
@@ -119,7 +111,7 @@ class VectorEnv:
 
     def __init__(self, task: Mapping[str, Any], body: Mapping[str, Any],
                  render_settings: Mapping[str, Any] | None, num_envs: int, seed: int = 0,
-                 controller: Mapping[str, Any] | None = None, skills=None, in_process: int = 0):
+                 drive=None, in_process: int = 0):
         if not 0 <= in_process <= num_envs:
             raise ValueError(f"in_process={in_process} must be between 0 and num_envs={num_envs}")
         self.task_name = task["name"]
@@ -132,7 +124,7 @@ class VectorEnv:
         for i in range(workers):
             parent, child = ctx.Pipe()
             proc = ctx.Process(target=_worker, args=(child, i, dict(task), dict(body), plain(render_settings),
-                                                      seed + i, plain(controller), skills),
+                                                      seed + i, drive),
                                daemon=True, name=f"hvc-env-{i}")
             proc.start()
             child.close()
@@ -140,8 +132,7 @@ class VectorEnv:
             self._procs.append(proc)
         try:
             for i in range(workers, num_envs):
-                self._hosts.append(_EnvHost(dict(task), dict(body), plain(render_settings), seed + i,
-                                            plain(controller), skills))
+                self._hosts.append(_EnvHost(dict(task), dict(body), plain(render_settings), seed + i, drive))
         except BaseException:
             self.close()
             raise
@@ -152,7 +143,7 @@ class VectorEnv:
         self.action_space = specs[0]["action_space"]          # what step() takes
         self.controller = specs[0]["controller"]              # None: raw body actions
         self.why_no_controller = specs[0]["why_not"]
-        self.skills = skills
+        self.skills = getattr(drive, "skills", None)
 
     def _send(self, index: int, message) -> None:
         try:

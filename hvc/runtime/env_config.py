@@ -43,6 +43,7 @@ def vector_env(cfg: DictConfig, seed: int | None = None):
     """`cfg.num_envs` envs of the configured task, body and controller (with its experts),
     seeded `seed` (default cfg.seed), seed + 1, ...; the one place a run's VectorEnv is built.
     Its `controller` is None when the controller cannot be built (the caller decides)."""
+    from hvc.controllers.factory import Drive
     from hvc.envs.vector_env import VectorEnv
     from hvc.errors import ControllerUnavailable
     from hvc.skills import skills_for_job
@@ -55,15 +56,17 @@ def vector_env(cfg: DictConfig, seed: int | None = None):
     else:
         why_not = None
     seed = int(cfg.seed if seed is None else seed)
+    controller = _plain(cfg.controller)
+    drive = Drive(controller, skills) if controller else None  # workers build the controller from it
     if cfg.get("actors", "local") == "ray":  # envs in Ray actors, on this machine or a cluster
         from hvc.envs.ray_actors import RayVectorEnv, connect
 
         connect(cfg.ray.address, cfg.ray.num_cpus)
-        envs = RayVectorEnv(task, body, render, int(cfg.num_envs), seed=seed, controller=_plain(cfg.controller),
-                            skills=skills, cpus_per_actor=float(cfg.ray.cpus_per_actor))
+        envs = RayVectorEnv(task, body, render, int(cfg.num_envs), seed=seed, drive=drive,
+                            cpus_per_actor=float(cfg.ray.cpus_per_actor))
     else:
-        envs = VectorEnv(task, body, render, int(cfg.num_envs), seed=seed, controller=_plain(cfg.controller),
-                         skills=skills, in_process=int(cfg.in_process_envs))
+        envs = VectorEnv(task, body, render, int(cfg.num_envs), seed=seed, drive=drive,
+                         in_process=int(cfg.in_process_envs))
     if why_not:
         envs.why_no_controller = why_not
     return envs
