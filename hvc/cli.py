@@ -39,6 +39,7 @@ def _run(cfg: DictConfig) -> None:
     """One job. A new run dir that a failure left holding only records (Hydra's and ours) is
     removed; in a sweep a failed job writes why into its dir and returns, so that the
     launcher goes on with the next job and the sweep ends with a summary (SweepReport)."""
+    _standard_start_method()
     hydra_cfg = HydraConfig.get()
     job_dir = Path(hydra_cfg.runtime.output_dir)
     log_file = f"{hydra_cfg.job.name}.log"
@@ -115,6 +116,16 @@ def _write_skills(cfg: DictConfig, run_dir: Path) -> None:
         return
     if skills is not None:
         skills.write(run_dir)
+
+
+def _standard_start_method() -> None:
+    """A job run inside joblib's worker (hydra/launcher=joblib) inherits the start method
+    'loky', which the env and expert worker processes it spawns cannot find: they die at start
+    and the job waits for them. Its own processes start with the standard one."""
+    import multiprocessing as mp
+
+    if mp.get_start_method(allow_none=True) not in (None, "spawn", "fork", "forkserver"):
+        mp.set_start_method("spawn", force=True)
 
 
 def _run_to_resume(cfg: DictConfig, output_dir: Path) -> Path:
