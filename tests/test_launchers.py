@@ -130,7 +130,8 @@ def test_job_cores_outside_a_sweep_and_the_user_cap(monkeypatch):
         job_cores()
 
 
-@pytest.mark.filterwarnings("ignore:.*validated against ConfigStore schema")  # pytest resets hvc.config's filter
+@pytest.mark.filterwarnings(r"ignore:\s*'hydra/launcher/\w+' is validated against ConfigStore schema")  # pytest
+# resets hvc.config's filter for each test
 def test_presets_select_the_plugins_with_one_flag():
     from hydra import compose, initialize_config_dir
 
@@ -167,22 +168,26 @@ def _metrics_rows(job: Path) -> list[tuple[int, str]]:
 
 
 def test_a_submitit_job_signalled_for_requeue_goes_on_from_its_checkpoint(tmp_path):
-    """SIGUSR2 is what SLURM sends before a time limit (and on preemption, with --signal): submitit
+    """SIGUSR2 is what SLURM sends before a time limit, to every process of the job step: submitit
     checkpoints the launcher's call and starts the same job again (the local executor restarts it
     itself; SLURM requeues it); hl_train saves on the way out and the new start finds checkpoint.pt
-    in its own job dir."""
+    in its own job dir. Here the signal goes to the job's main process and its children (two env
+    worker processes) at once, as SLURM sends it."""
     total = 3000
     log = (tmp_path / "sweep.log").open("w")
     proc = subprocess.Popen([sys.executable, "-m", "hvc.cli", "-m", "hydra/launcher=submitit_local",
                              "body=rolling_ball", "controller=end_to_end", "stage=train", f"total_steps={total}",
-                             "num_envs=1", "log_every=20", "seed=0", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+                             "num_envs=2", "in_process_envs=0", "log_every=20", "seed=0", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
                             stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path)
     try:
-        job = tmp_path / "sweep" / f"0_body-rolling_ball_controller-end_to_end_log_every-20_num_envs-1_seed-0_" \
-                                    f"stage-train_total_steps-{total}"
+        job = tmp_path / "sweep" / f"0_body-rolling_ball_controller-end_to_end_in_process_envs-0_log_every-20_" \
+                                    f"num_envs-2_seed-0_stage-train_total_steps-{total}"
         _wait_for(lambda: any(s >= 300 for s, _ in _metrics_rows(job)), 120, "300 env steps", proc)
         first_pid = int((job / ".lock").read_text())
-        os.kill(first_pid, signal.SIGUSR2)
+        children = [int(c) for c in Path(f"/proc/{first_pid}/task/{first_pid}/children").read_text().split()]
+        assert len(children) >= 2  # the env workers (and multiprocessing's resource tracker)
+        for pid in (first_pid, *children):
+            os.kill(pid, signal.SIGUSR2)
         assert proc.wait(timeout=240) == 0, (tmp_path / "sweep.log").read_text()[-3000:]
     finally:
         if proc.poll() is None:
@@ -190,8 +195,9 @@ def test_a_submitit_job_signalled_for_requeue_goes_on_from_its_checkpoint(tmp_pa
         log.close()
     assert int((job / ".lock").read_text()) != first_pid  # a second process wrote the dir
     summary = json.loads((job / "summary.json").read_text())
-    unroll = _resolved(job)["task"]["agent"]["unroll"]
-    assert total <= summary["env_steps"] < total + unroll  # a resume mid-unroll ends within one unroll past it
+    resolved = _resolved(job)
+    round_steps = resolved["task"]["agent"]["unroll"] * resolved["num_envs"]
+    assert total <= summary["env_steps"] < total + round_steps  # a resume mid-unroll ends within one round past it
     text = (job / "cli.log").read_text()
     resumed = [line for line in text.splitlines() if "resumed from" in line and "checkpoint.pt" in line]
     assert len(resumed) == 1, text[-3000:]
@@ -199,6 +205,6 @@ def test_a_submitit_job_signalled_for_requeue_goes_on_from_its_checkpoint(tmp_pa
     assert 300 <= at < total  # from the checkpoint saved at the signal, not from the start
     rows = _metrics_rows(job)
     assert len(rows) == len(set(rows)) and rows == sorted(rows, key=lambda r: r[0])  # cut back: no row twice
-    assert max(s for s, _ in rows) >= total - int(20)
+    assert max(s for s, _ in rows) >= total - 20  # log_every=20: the last rows are at the end
     assert len((job / "commands.log").read_text().splitlines()) == 2
     assert not (job / "failed.json").exists()
