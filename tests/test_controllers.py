@@ -109,7 +109,7 @@ def _cyclic_expert(obs_size, n=12, cycle=4):
 
 
 def test_steerable_holds_a_rate_for_one_gait_cycle_from_the_matching_phase(env):
-    from hvc.controllers.structured import SteerableController
+    from hvc.controllers.steerable import SteerableController
 
     expert = _cyclic_expert(136 + 2)
     controller = SteerableController(expert, (-1.5, 1.5))
@@ -129,7 +129,7 @@ def test_steerable_holds_a_rate_for_one_gait_cycle_from_the_matching_phase(env):
 
 
 def test_switching_enters_a_behaviour_at_the_best_matching_pose(env):
-    from hvc.controllers.structured import SwitchingController
+    from hvc.controllers.switching import SwitchingController
 
     expert = _cyclic_expert(136 + 1 + 2)
     behaviours = [_reference(6, 4), _reference(9, 5)]
@@ -150,7 +150,7 @@ def test_switching_enters_a_behaviour_at_the_best_matching_pose(env):
 def test_switching_holds_each_choice_one_gait_cycle_by_default():
     from dataclasses import replace
 
-    from hvc.controllers.structured import SwitchingController
+    from hvc.controllers.switching import SwitchingController
 
     stand = _reference(6, 4)
     run = replace(_reference(12, 5), cyclic=True, phase=np.tile(np.arange(5) / 5, 3)[:12])  # 5-step cycle

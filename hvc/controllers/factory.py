@@ -40,7 +40,8 @@ def build_controller(controller: Mapping[str, Any], env, skills=None):
     if skills is None:
         raise ControllerUnavailable(f"controller={name} needs skills; none were resolved for this job")
     if name in ("steerable", "switching"):
-        from hvc.controllers.structured import SteerableController, SwitchingController
+        from hvc.controllers.steerable import SteerableController
+        from hvc.controllers.switching import SwitchingController
 
         lib = skills.library
         if name == "steerable":

@@ -65,7 +65,7 @@ def structured_scores(cfg: DictConfig, env, expert, act, metrics: MetricsLogger)
         error = [abs(r["achieved_rate"] - r["commanded_rate"]) for r in rows if np.isfinite(r["achieved_rate"])]
         return {"steering_rate_error": float(np.mean(error)) if error else float("nan")}
     if clip == "switching":
-        from hvc.controllers.structured import gait_cycle_steps
+        from hvc.controllers.switching import gait_cycle_steps
 
         scores = switching_transitions(env, act, int(cfg.episodes), gait_cycle_steps(env.layout.logic.behaviours))
         print(f"switch clip={clip} transitions_completed={scores['transitions_completed']:.2f} "
