@@ -215,6 +215,22 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, floa
     return actor_sps, {threads: updates[threads] * batch * unroll / elapsed[threads] for threads in thread_counts}
 
 
+def _interleaved_sps(variants: dict, seconds: float, rng: np.random.Generator, blocks: int = 5) -> dict:
+    """Env steps/s of each batched env in `variants` under random actions, measured in
+    interleaved blocks so that the machine's drift hits every variant alike."""
+    elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
+    for envs in variants.values():
+        envs.reset()
+    for _ in range(blocks):
+        for key, envs in variants.items():
+            t0 = time.perf_counter()
+            while time.perf_counter() - t0 < seconds / blocks:
+                envs.step(envs.random_actions(rng))
+                steps[key] += envs.num_envs
+            elapsed[key] += time.perf_counter() - t0
+    return {key: steps[key] / elapsed[key] for key in variants}
+
+
 def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> tuple[float, dict[int, float]]:
     """(ceiling: num_envs x one env's steps/s, {in_process: env steps/s of VectorEnv}) with
     random high-level actions, measured in interleaved blocks so that the machine's drift
@@ -235,21 +251,10 @@ def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
         for key, n, in_process in [("single", 1, 1)] + [(k, num_envs, k) for k in range(num_envs + 1)]:
             variants[key] = VectorEnv(task, body, render, n, seed=0, drive=Drive(controller, skills_for_job(cfg)),
                                       in_process=in_process)
-        elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
-        for envs in variants.values():
-            envs.reset()
-        blocks = 5
-        for _ in range(blocks):
-            for key, envs in variants.items():
-                t0 = time.perf_counter()
-                while time.perf_counter() - t0 < seconds / blocks:
-                    envs.step(envs.random_actions(rng))
-                    steps[key] += envs.num_envs
-                elapsed[key] += time.perf_counter() - t0
+        rate = _interleaved_sps(variants, seconds, rng)
     finally:
         for envs in variants.values():
             envs.close()
-    rate = {key: steps[key] / elapsed[key] for key in variants}
     return num_envs * rate.pop("single"), rate
 
 
@@ -274,20 +279,11 @@ def ray_actors_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
         variants["local"] = VectorEnv(task, body, render, num_envs, seed=0, drive=Drive(controller, skills_for_job(cfg)),
                                       in_process=0)
         variants["ray"] = RayVectorEnv(task, body, render, num_envs, seed=0, drive=Drive(controller, skills_for_job(cfg)))
-        elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
-        for envs in variants.values():
-            envs.reset()
-        for _ in range(5):
-            for key, envs in variants.items():
-                t0 = time.perf_counter()
-                while time.perf_counter() - t0 < seconds / 5:
-                    envs.step(envs.random_actions(rng))
-                    steps[key] += envs.num_envs
-                elapsed[key] += time.perf_counter() - t0
+        rate = _interleaved_sps(variants, seconds, rng)
     finally:
         for envs in variants.values():
             envs.close()
-    return steps["local"] / elapsed["local"], steps["ray"] / elapsed["ray"]
+    return rate["local"], rate["ray"]
 
 
 def main(argv=None) -> None:

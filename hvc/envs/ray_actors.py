@@ -14,7 +14,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from hvc.envs.vector_env import WorkerError, _EnvHost
+from hvc.envs.vector_env import BatchedEnvs, WorkerError, _EnvHost
 
 
 def _ray():
@@ -50,7 +50,7 @@ class _Host(_EnvHost):
         return self.spec
 
 
-class RayVectorEnv:
+class RayVectorEnv(BatchedEnvs):
     """`num_envs` envs, one per Ray actor, stepped together; auto-resets finished episodes."""
 
     def __init__(self, task: Mapping[str, Any], body: Mapping[str, Any], render_settings: Mapping[str, Any] | None,
@@ -79,21 +79,11 @@ class RayVectorEnv:
             self.close()
             raise WorkerError(f"a Ray env actor (task={self.task_name}) failed: {error}") from None
 
-    @staticmethod
-    def _stack(observations: list[dict]) -> dict[str, np.ndarray]:
-        return {k: np.stack([o[k] for o in observations]) for k in observations[0]}
-
     def reset(self) -> dict[str, np.ndarray]:
         return self._stack(self._get([a.reset.remote() for a in self._actors]))
 
     def step(self, actions):
-        results = self._get([a.step.remote(np.asarray(act)) for a, act in zip(self._actors, actions)])
-        obs, rewards, discounts, dones, infos = zip(*results)
-        return (self._stack(list(obs)), np.asarray(rewards, np.float32), np.asarray(discounts, np.float32),
-                np.asarray(dones, bool), list(infos))
-
-    def random_actions(self, rng: np.random.Generator) -> list:
-        return [self.action_space.sample(rng) for _ in range(self.num_envs)]
+        return self._batch(self._get([a.step.remote(np.asarray(act)) for a, act in zip(self._actors, actions)]))
 
     def close(self) -> None:
         if self.closed:

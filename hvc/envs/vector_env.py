@@ -95,7 +95,26 @@ def _worker(conn, index: int, task, body, render_settings, seed: int, drive) -> 
             pass
 
 
-class VectorEnv:
+class BatchedEnvs:
+    """What VectorEnv and the Ray backend share: stacking per-env results into batches and
+    random actions from the action space step() takes (`action_space`, `num_envs` set by them)."""
+
+    @staticmethod
+    def _stack(observations: list[dict]) -> dict[str, np.ndarray]:
+        return {k: np.stack([o[k] for o in observations]) for k in observations[0]}
+
+    def _batch(self, results: list):
+        """Per-env (obs, reward, discount, done, info) as stacked arrays and a list of infos."""
+        obs, rewards, discounts, dones, infos = zip(*results)
+        return (self._stack(list(obs)), np.asarray(rewards, np.float32), np.asarray(discounts, np.float32),
+                np.asarray(dones, bool), list(infos))
+
+    def random_actions(self, rng: np.random.Generator) -> list:
+        """One random action per env from the action space step() takes."""
+        return [self.action_space.sample(rng) for _ in range(self.num_envs)]
+
+
+class VectorEnv(BatchedEnvs):
     """`num_envs` FastEnvs stepped together; auto-resets finished episodes.
 
     `step(actions)` returns stacked observations, rewards, discounts, dones and a list of
@@ -171,10 +190,6 @@ class VectorEnv:
             raise WorkerError(f"env worker {index} (task={self.task_name}) failed:\n{payload}")
         return payload
 
-    @staticmethod
-    def _stack(observations: list[dict]) -> dict[str, np.ndarray]:
-        return {k: np.stack([o[k] for o in observations]) for k in observations[0]}
-
     def _in_process(self, command: str, actions=None) -> list:
         """`command` on every in-process env. A failure closes everything (the workers hold
         replies to the same command that no one will read) and names the env and task."""
@@ -201,14 +216,7 @@ class VectorEnv:
         for i in range(workers):
             self._send(i, ("step", np.asarray(actions[i])))
         here = self._in_process("step", actions)
-        results = [self._receive(i) for i in range(workers)] + here
-        obs, rewards, discounts, dones, infos = zip(*results)
-        return (self._stack(list(obs)), np.asarray(rewards, np.float32), np.asarray(discounts, np.float32),
-                np.asarray(dones, bool), list(infos))
-
-    def random_actions(self, rng: np.random.Generator) -> list:
-        """One random action per env from the action space step() takes."""
-        return [self.action_space.sample(rng) for _ in range(self.num_envs)]
+        return self._batch([self._receive(i) for i in range(workers)] + here)
 
     def close(self) -> None:
         if getattr(self, "closed", False):
