@@ -168,9 +168,10 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, floa
     from hvc.agents.network import AgentSpec, HighLevelAgent
     from hvc.controllers.base import ControlledEnv
     from hvc.controllers.fragments import FragmentsController
-    from hvc.algorithms.hl_learners import vtrace_update
+    from hvc.algorithms.replay import UnrollReplay
+    from hvc.algorithms.vtrace import VTraceLearner
+    from hvc.runtime.hl_train import unroll_fields
     from hvc.skills import Skills
-    from hvc.runtime.hl_train import Unrolls
 
     torch.set_num_threads(1)
     cfg = compose([f"task={task_name}", "task.layout_pool=1", "task.init_from_clips=false"])
@@ -190,14 +191,12 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, floa
     spec = AgentSpec(env.layout.proprio.size, env.layout.logic.observation_size, controlled.action_space.n, True,
                      int(agent_cfg.lstm_size), tuple(agent_cfg.value_mlp), vision)
     env.close()
-    agent = HighLevelAgent(spec)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-4)
+    learner = VTraceLearner.from_config(HighLevelAgent(spec), cfg)
     unroll, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
-    replay = Unrolls.allocate(batch * 2, unroll, spec.proprio_size, spec.task_size, vision, spec.lstm_size,
-                              spec.policy_lstm)
+    replay = UnrollReplay(batch * 2, unroll_fields(spec, unroll))
     replay.size = replay.capacity
-    replay.action[:] = rng.integers(0, spec.action_size, replay.action.shape)
-    replay.new_action[:] = 1.0
+    replay.arrays["action"][:] = rng.integers(0, spec.action_size, replay.arrays["action"].shape)
+    replay.arrays["new_action"][:] = 1.0
     # the learner at one thread and, on vision tasks, at torch_threads=auto's every core,
     # in interleaved blocks so that the machine's drift hits both alike
     thread_counts = sorted({1, int(cfg.torch_threads)})
@@ -208,7 +207,7 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, floa
             torch.set_num_threads(threads)
             t0 = time.perf_counter()
             while time.perf_counter() - t0 < seconds / blocks or updates[threads] < 2:
-                vtrace_update(agent, optimizer, replay.sample(batch, rng), 0.99, 0.01, cfg.algorithm)
+                learner.update(replay.sample(batch, rng))
                 updates[threads] += 1
             elapsed[threads] += time.perf_counter() - t0
     torch.set_num_threads(1)

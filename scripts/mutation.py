@@ -44,20 +44,22 @@ EQUIVALENT = RESULTS / "equivalent.toml"
 # name: (files to mutate, fast test files, mutant-name globs or None for all mutants of the files)
 GROUPS: dict[str, tuple[list[str], list[str], list[str] | None]] = {
     "reward": (["hvc/envs/tracking_reward.py"], ["tests/test_tracking_reward.py"], None),
-    "vtrace": (["hvc/algorithms/vtrace.py"], ["tests/test_vtrace.py"], None),
+    "vtrace": (["hvc/algorithms/vtrace.py"], ["tests/test_vtrace.py", "tests/test_agent.py"], None),
     "retrace": (["hvc/algorithms/retrace.py"], ["tests/test_retrace.py", "tests/test_lowlevel.py"], None),
-    "svg0": (["hvc/algorithms/svg0_retrace.py"], ["tests/test_lowlevel.py"], None),
-    # the high-level learners: V-trace update, SVG(0) + Retrace, and the Wolpertinger query learner
-    "hl_learners": (["hvc/algorithms/hl_learners.py", "hvc/controllers/query.py"],
-                    ["tests/test_agent.py", "tests/test_retrace.py", "tests/test_controllers.py"], None),
+    # SVG(0) + Retrace at both levels: the low level's MLP learner and the high level's recurrent one
+    "svg0": (["hvc/algorithms/svg0_retrace.py"],
+             ["tests/test_lowlevel.py", "tests/test_agent.py", "tests/test_retrace.py"], None),
+    "wolpertinger": (["hvc/algorithms/wolpertinger.py", "hvc/controllers/query.py"],
+                     ["tests/test_agent.py", "tests/test_controllers.py"], None),
     "fragments_keys": (["hvc/controllers/fragments.py", "hvc/mocap/clip_sets.py"],
                        ["tests/test_controllers.py", "tests/test_clip_sets.py"], None),
-    # checkpoint contents and their loading; the resume block inside hl_train.train is left out
-    # (each of its hundreds of mutants would rerun whole training runs)
-    "resume": (["hvc/algorithms/replay.py", "hvc/runtime/hl_train.py", "hvc/algorithms/svg0_retrace.py"],
-               ["tests/test_resume.py", "tests/test_lowlevel.py"],
-               ["hvc.runtime.hl_train.x_load_checkpoint*", "hvc.algorithms.replay.*state_dict*",
-                "hvc.algorithms.svg0_retrace.*state_dict*"]),
+    # checkpoint contents and their loading: the learners' and the replay's state, random streams
+    # (the resume block of run_hl_training is left out: its mutants would rerun whole training runs)
+    "resume": (["hvc/algorithms/replay.py", "hvc/runtime/hl_train.py", "hvc/algorithms/svg0_retrace.py",
+                "hvc/algorithms/vtrace.py", "hvc/algorithms/wolpertinger.py", "hvc/io/checkpoint.py"],
+               ["tests/test_faults.py", "tests/test_lowlevel.py"],
+               ["hvc.runtime.hl_train.x_load_checkpoint*", "hvc.algorithms.*state_dict*",
+                "hvc.io.checkpoint.x_*random_states*"]),
     "conversion": (["hvc/mocap/convert.py"], ["tests/test_mocap_convert.py"], None),
 }
 DETECTED = {"killed", "timeout", "segfault", "caught by type check"}

@@ -75,25 +75,21 @@ def test_vision_and_continuous_heads():
 def test_continuous_policy_stays_steerable_under_a_critic_that_prefers_a_bound():
     """A critic that grows with the action pushes the mean to the bound; the tanh must not
     saturate there (its gradient would vanish for good) and sigma keeps a gradient at its floor."""
-    from types import SimpleNamespace
 
     import numpy as np
-    from omegaconf import OmegaConf
 
-    from hvc.algorithms.hl_learners import ContinuousLearner
+    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
 
     torch.manual_seed(0)
     spec = AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                      value_mlp=(16, 1), critic_takes_action=True)
     agent = HighLevelAgent(spec)
-    learner = ContinuousLearner(agent, OmegaConf.create({"target_update_period": 10**6}),
-                                OmegaConf.create({"sigma_clip": [0.1, 1.0], "entropy_cost": 0.0}),
-                                SimpleNamespace(low=-1.0, high=1.0))
+    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, learning_rate=1e-2, sigma_clip=(0.1, 1.0),
+                                   entropy_cost=0.0, target_update_period=10**6)
     learner.target.value = _linear_critic(16, 2, 5.0)  # Q_target(h, a) = 5 * sum(a): always "more action"
     batch, T, B = _policy_batch()
-    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-2)
     for _ in range(300):
-        _svg0_policy_step(learner, optimizer, batch)
+        _svg0_policy_step(learner, batch)
     out, _, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
                       agent.initial_state(B), done=batch["first"])
     mean, _ = agent.gaussian(out, -1.0, 1.0)
@@ -121,37 +117,33 @@ def _policy_batch(T: int = 3, B: int = 8):
     return batch, T, B
 
 
-def _svg0_policy_step(learner, optimizer, batch) -> None:
+def _svg0_policy_step(learner, batch) -> None:
     """One step of the policy loss alone (no critic loss)."""
     B = batch["proprio"].shape[1]
     args = (batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"])
     out, _, _ = learner.agent(*args, learner.agent.initial_state(B), done=batch["first"])
     with torch.no_grad():
         t_out, t_h, _ = learner.target(*args, learner.target.initial_state(B), done=batch["first"])
-    learner.step(optimizer, torch.zeros(()), out, batch, torch.zeros(batch["new_action"].shape), t_out, t_h)
+    learner.step(torch.zeros(()), out, batch, torch.zeros(batch["new_action"].shape), t_out, t_h)
 
 
 def test_high_level_svg0_follows_q_target_not_the_online_q():
     """The paper's SVG(0) maximises Q_target(s, a) at both levels: with an online Q that wants
     the opposite, the policy still moves the way the target's Q wants."""
-    from types import SimpleNamespace
 
-    from omegaconf import OmegaConf
 
-    from hvc.algorithms.hl_learners import ContinuousLearner
+    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
 
     torch.manual_seed(0)
     agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                                      value_mlp=(16, 1), critic_takes_action=True))
-    learner = ContinuousLearner(agent, OmegaConf.create({"target_update_period": 10**6}),
-                                OmegaConf.create({"sigma_clip": [0.1, 1.0], "entropy_cost": 0.0}),
-                                SimpleNamespace(low=-1.0, high=1.0))
+    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, learning_rate=1e-2, sigma_clip=(0.1, 1.0),
+                                   entropy_cost=0.0, target_update_period=10**6)
     agent.value = _linear_critic(16, 2, +5.0)
     learner.target.value = _linear_critic(16, 2, -5.0)
     batch, _, B = _policy_batch()
-    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-2)
     for _ in range(100):
-        _svg0_policy_step(learner, optimizer, batch)
+        _svg0_policy_step(learner, batch)
     out, _, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
                       agent.initial_state(B), done=batch["first"])
     mean, _ = agent.gaussian(out, -1.0, 1.0)
@@ -201,28 +193,27 @@ def test_normalizer_floor_travels_with_the_weights():
 def test_a_nan_loss_stops_before_the_weights_or_optimiser_change():
     """The run's exit checkpoint must hold the last good state, not NaN weights."""
     import pytest
-    from omegaconf import OmegaConf
 
-    from hvc.algorithms.hl_learners import vtrace_update
+    from hvc.algorithms.vtrace import VTraceLearner
     from hvc.errors import NonFiniteLoss
 
     torch.manual_seed(0)
     spec = AgentSpec(proprio_size=3, task_size=0, action_size=4, discrete=True, lstm_size=16, value_mlp=(16, 1))
     agent = HighLevelAgent(spec)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-2)
+    learner = VTraceLearner(agent, 0.9, learning_rate=1e-2, entropy_cost=0.01)
+    optimizer = learner.optimizer
     T, B = 3, 2
     batch = {"proprio": torch.randn(T + 1, B, 3), "task": torch.zeros(T + 1, B, 0),
              "prev_reward": torch.zeros(T + 1, B), "prev_action": torch.zeros(T + 1, B, dtype=torch.long),
              "first": torch.zeros(T + 1, B), "action": torch.zeros(T, B, dtype=torch.long),
              "log_mu": torch.full((T, B), -1.4), "reward": torch.ones(T, B), "discount": torch.ones(T, B),
              "new_action": torch.ones(T, B), "state": torch.zeros(B, 4, 128)}  # policy LSTM: 128
-    algorithm = OmegaConf.create({"rho_clip": 1.0, "c_clip": 1.0})
-    vtrace_update(agent, optimizer, batch, 0.9, 0.01, algorithm)  # a good step: Adam has moments now
+    learner.update(batch)  # a good step: Adam has moments now
     weights = {k: v.clone() for k, v in agent.state_dict().items()}
     moments = [s["exp_avg"].clone() for s in optimizer.state.values()]
     batch["reward"][1, 0] = float("nan")
     with pytest.raises(NonFiniteLoss, match="non-finite loss"):
-        vtrace_update(agent, optimizer, batch, 0.9, 0.01, algorithm)
+        learner.update(batch)
     assert all(torch.equal(weights[k], v) for k, v in agent.state_dict().items())
     assert all(torch.equal(m, s["exp_avg"]) for m, s in zip(moments, optimizer.state.values()))
 
@@ -232,7 +223,7 @@ def test_learning_discounts_end_every_episode_time_limits_included():
     import numpy as np
 
     from hvc.algorithms.vtrace import vtrace_targets
-    from hvc.runtime.hl_train import learning_discounts
+    from hvc.runtime.acting import learning_discounts
 
     env_discounts = np.array([1.0, 1.0, 0.0, 1.0], np.float32)   # ... a fall, and a time limit (discount 1)
     dones = np.array([False, True, True, False])
@@ -258,62 +249,52 @@ def test_continuous_actions_keep_the_raw_sample_and_its_exact_density():
     """The env gets the clipped action; replay keeps the raw sample and its Gaussian log
     density, which the learner's log pi reproduces (a clipped value's density would not
     be its probability), while Q sees the clipped action as the env did."""
-    from types import SimpleNamespace
 
     import numpy as np
-    from omegaconf import OmegaConf
 
-    from hvc.algorithms.hl_learners import ContinuousLearner
-    from hvc.runtime.hl_train import act
+    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+    from hvc.runtime.acting import carry
 
     torch.manual_seed(0)
     spec = AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                      value_mlp=(16, 1), critic_takes_action=True)
     agent = HighLevelAgent(spec)
-    learner = ContinuousLearner(agent, OmegaConf.create({}), OmegaConf.create({"sigma_clip": [0.9, 1.0]}),
-                                SimpleNamespace(low=-0.2, high=0.2))  # sigma >> range: most samples clip
+    learner = RecurrentSVG0Retrace(agent, 0.9, -0.2, 0.2, sigma_clip=(0.9, 1.0))  # sigma >> range: most samples clip
     B = 64
     obs = {"proprio": np.random.default_rng(0).normal(size=(B, 3)).astype(np.float32),
            "task": np.zeros((B, 0), np.float32)}
-    send, action, log_mu, _, _ = act(agent, learner, obs, np.zeros(B, np.float32), np.zeros((B, 2), np.float32),
-                                     np.ones(B, np.float32), agent.initial_state(B))
+    with torch.no_grad():
+        out, h, _ = agent(torch.from_numpy(obs["proprio"][None]), torch.from_numpy(obs["task"][None]),
+                          torch.zeros(1, B), torch.zeros(1, B, 2), agent.initial_state(B), done=torch.ones(1, B))
+    acted = learner.act(out[0], h[0])
+    send, action, log_mu = acted.send, acted.action, acted.log_mu
     assert np.all(np.abs(send) <= 0.2) and np.mean(np.abs(action) > 0.2) > 0.5
     np.testing.assert_array_equal(send, np.clip(action, -0.2, 0.2))
     with torch.no_grad():
-        out, _, _ = agent(torch.from_numpy(obs["proprio"][None]), torch.from_numpy(obs["task"][None]),
-                          torch.zeros(1, B), torch.zeros(1, B, 2), agent.initial_state(B), done=torch.ones(1, B))
         dist = learner.distribution(agent, out[0])
         np.testing.assert_allclose(dist.log_prob(torch.from_numpy(action)).sum(-1).numpy(), log_mu, atol=1e-5)
         clipped = dist.log_prob(torch.from_numpy(send)).sum(-1).numpy()
     assert np.abs(clipped - log_mu).max() > 0.1  # the old, clipped density differs: the test can fail
-    from hvc.runtime.hl_train import carry, sees_clipped_actions
-
-    assert sees_clipped_actions(learner)
     infos = [{"new_action": True}] * B
-    _, in_force, _, next_input, _ = carry(action, np.zeros_like(action), np.zeros(B), np.zeros(B, bool), infos,
-                                          seen=send)
+    _, in_force, _, next_input, _ = carry(acted, np.zeros_like(action), np.zeros(B), np.zeros(B, bool), infos)
     np.testing.assert_array_equal(in_force, action)  # replay: the raw sample
     np.testing.assert_array_equal(next_input, send)  # the agent's next input: what the env got
 
 
 def test_continuous_learner_refreshes_its_target_agent_on_schedule():
-    from types import SimpleNamespace
 
-    from omegaconf import OmegaConf
 
-    from hvc.algorithms.hl_learners import ContinuousLearner
+    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
 
     torch.manual_seed(0)
     agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                                      value_mlp=(16, 1), critic_takes_action=True))
-    learner = ContinuousLearner(agent, OmegaConf.create({"target_update_period": 3}), OmegaConf.create({}),
-                                SimpleNamespace(low=-1.0, high=1.0))
-    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-2)
+    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, learning_rate=1e-2, target_update_period=3)
     same = lambda: all(torch.equal(a, b) for a, b in zip(agent.state_dict().values(),  # noqa: E731
                                                          learner.target.state_dict().values()))
     history = []
     for _ in range(6):
-        learner.update(optimizer, _continuous_batch(), 0.9)
+        learner.update(_continuous_batch())
         history.append(same())
     assert history == [False, False, True, False, False, True]
 
@@ -323,22 +304,19 @@ def test_query_learner_fits_q_to_one_step_targets_on_query_and_selected_key():
     from types import SimpleNamespace
 
     import numpy as np
-    from omegaconf import OmegaConf
 
-    from hvc.algorithms.hl_learners import QueryLearner
+    from hvc.algorithms.wolpertinger import WolpertingerLearner
 
     torch.manual_seed(0)
     agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                                      value_mlp=(32, 1), critic_takes_action=True))
     selector = SimpleNamespace(keys=np.zeros((5, 2), np.float32))
-    learner = QueryLearner(agent, OmegaConf.create({"target_update_period": 10}), OmegaConf.create({}),
-                           SimpleNamespace(low=-3.0, high=3.0), selector)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=3e-3)
+    learner = WolpertingerLearner(agent, 0.9, -3.0, 3.0, selector, learning_rate=3e-3, target_update_period=10)
     batch = _continuous_batch()
     batch["new_action"] = torch.zeros_like(batch["new_action"])  # no policy term: Q alone
-    first = learner.update(optimizer, batch, 0.9)["critic_loss"]
+    first = learner.update(batch)["critic_loss"]
     for _ in range(400):
-        last = learner.update(optimizer, batch, 0.9)["critic_loss"]
+        last = learner.update(batch)["critic_loss"]
     assert last < 0.05 * first
     _, h, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
                     agent.initial_state(4), done=batch["first"])
@@ -349,18 +327,17 @@ def test_query_learner_fits_q_to_one_step_targets_on_query_and_selected_key():
 
 def test_vtrace_update_sets_rho_to_one_on_held_steps(monkeypatch):
     """Held steps chose nothing, so their stored log mu must not weight the targets."""
-    from omegaconf import OmegaConf
 
-    import hvc.algorithms.hl_learners as hl_learners
+    import hvc.algorithms.vtrace as vtrace
 
     seen = {}
-    original = hl_learners.vtrace_targets
+    original = vtrace.vtrace_targets
 
     def spy(log_rhos, *args, **kwargs):
         seen["log_rhos"] = log_rhos.clone()
         return original(log_rhos, *args, **kwargs)
 
-    monkeypatch.setattr(hl_learners, "vtrace_targets", spy)
+    monkeypatch.setattr(vtrace, "vtrace_targets", spy)
     torch.manual_seed(0)
     agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=4, discrete=True, lstm_size=16,
                                      value_mlp=(16, 1)))
@@ -371,8 +348,7 @@ def test_vtrace_update_sets_rho_to_one_on_held_steps(monkeypatch):
              "first": torch.zeros(T + 1, B), "action": torch.zeros(T, B, dtype=torch.long),
              "log_mu": torch.full((T, B), -9.0), "reward": torch.ones(T, B), "discount": torch.ones(T, B),
              "new_action": new_action, "state": torch.zeros(B, 4, 128)}
-    hl_learners.vtrace_update(agent, torch.optim.Adam(agent.parameters()), batch, 0.9, 0.01,
-                              OmegaConf.create({"rho_clip": 1.0, "c_clip": 1.0}))
+    vtrace.VTraceLearner(agent, 0.9, entropy_cost=0.01).update(batch)
     log_rhos = seen["log_rhos"]
     assert torch.all(log_rhos[new_action == 0] == 0)
     assert torch.all(log_rhos[new_action == 1] > 5)  # pi / mu with mu = e^-9

@@ -31,19 +31,16 @@ def _host_noise(monkeypatch):
 
 def _learner_losses(device: str, steps: int = 3) -> list[dict[str, float]]:
     """A few SVG(0) + Retrace updates of the high-level agent on one fixed batch."""
-    from omegaconf import OmegaConf
 
     from hvc.agents.network import AgentSpec, HighLevelAgent
-    from hvc.algorithms.hl_learners import ContinuousLearner
-    from hvc.controllers.base import ActionSpace
+    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
 
     torch.manual_seed(0)
     spec = AgentSpec(proprio_size=5, task_size=3, action_size=2, discrete=False, lstm_size=16, value_mlp=(16, 1),
                      vision=False, critic_takes_action=True)
     agent = HighLevelAgent(spec).to(device)
-    algorithm = OmegaConf.create({"entropy_cost": 1e-4, "target_update_period": 2, "value_samples": 2})
-    learner = ContinuousLearner(agent, algorithm, OmegaConf.create({}), ActionSpace(discrete=False, size=2, low=-1.0, high=1.0))
-    optimizer = torch.optim.Adam(agent.parameters(), lr=1e-3)
+    learner = RecurrentSVG0Retrace(agent, 0.99, -1.0, 1.0, learning_rate=1e-3, entropy_cost=1e-4,
+                                   target_update_period=2, value_samples=2)
     rng = np.random.default_rng(0)
     T, B, H = 5, 4, max(spec.lstm_size, spec.policy_lstm)
     batch = {"proprio": rng.normal(size=(T + 1, B, 5)), "task": rng.normal(size=(T + 1, B, 3)),
@@ -55,7 +52,7 @@ def _learner_losses(device: str, steps: int = 3) -> list[dict[str, float]]:
     out = []
     for _ in range(steps):
         torch.manual_seed(1)  # the same noise for the samples inside the update on both devices
-        out.append(learner.update(optimizer, copy.copy(batch), 0.99))
+        out.append(learner.update(copy.copy(batch)))
     return out
 
 

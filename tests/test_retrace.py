@@ -47,18 +47,16 @@ def test_zero_traces_give_one_step_targets():
 def _high_level_critic_loss(log_mu_of):
     """The continuous high-level learner's critic loss on one fixed batch (fresh learner, fixed
     seeds), with behaviour log-probabilities `log_mu_of(log_pi)` of the target policy's log_pi."""
-    from types import SimpleNamespace
 
-    from omegaconf import OmegaConf
 
     from hvc.agents.network import AgentSpec, HighLevelAgent
-    from hvc.algorithms.hl_learners import ContinuousLearner
+    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
 
     torch.manual_seed(0)
     agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                                      value_mlp=(16, 1), critic_takes_action=True))
-    learner = ContinuousLearner(agent, OmegaConf.create({"target_update_period": 10**6}),
-                                OmegaConf.create({"sigma_clip": [0.3, 1.0]}), SimpleNamespace(low=-1.0, high=1.0))
+    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, learning_rate=0.0, sigma_clip=(0.3, 1.0),
+                                   target_update_period=10**6)
     T, B = 5, 4
     g = torch.Generator().manual_seed(1)
     b = {"proprio": torch.randn(T + 1, B, 3, generator=g), "task": torch.zeros(T + 1, B, 0),
@@ -71,7 +69,7 @@ def _high_level_critic_loss(log_mu_of):
         log_pi = learner.distribution(learner.target, t_out[:-1]).log_prob(b["action"]).sum(-1)
     b["log_mu"] = log_mu_of(log_pi)
     torch.manual_seed(2)  # the same value samples in every call
-    return learner.update(torch.optim.SGD(agent.parameters(), lr=0.0), b, 0.9)["critic_loss"]
+    return learner.update(b)["critic_loss"]
 
 
 def test_high_level_retrace_truncates_traces_at_one():

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -138,6 +139,18 @@ class HighLevelAgent(nn.Module):
         device = self.policy_out.weight.device
         z = lambda n: torch.zeros(1, batch, n, device=device)  # noqa: E731
         return (z(self.spec.lstm_size), z(self.spec.lstm_size), z(self.spec.policy_lstm), z(self.spec.policy_lstm))
+
+    def pack_state(self, state: tuple[torch.Tensor, ...]) -> np.ndarray:
+        """The LSTM states as one [batch, 4, hidden] array for the replay (unpack_state undoes it)."""
+        hidden = max(self.spec.lstm_size, self.spec.policy_lstm)
+        out = np.zeros((state[0].shape[1], 4, hidden), np.float32)
+        for k, s in enumerate(state):
+            out[:, k, :s.shape[-1]] = s[0].cpu().numpy()
+        return out
+
+    def unpack_state(self, packed: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        sizes = (self.spec.lstm_size, self.spec.lstm_size, self.spec.policy_lstm, self.spec.policy_lstm)
+        return tuple(packed[:, k, :n][None].contiguous() for k, n in enumerate(sizes))
 
     def forward(self, proprio: torch.Tensor, task: torch.Tensor, prev_reward: torch.Tensor,
                 prev_action: torch.Tensor, state: tuple[torch.Tensor, ...], image: torch.Tensor | None = None,

@@ -1,60 +1,85 @@
-"""A replay buffer of fixed-length unrolls (the paper's actors write unrolls of length N).
+"""One replay buffer of fixed-length unrolls for both levels (the paper's actors write unrolls
+of length N).
 
-Stored batch-major in preallocated numpy arrays (a ring); `sample` returns time-major
-torch tensors. An unroll cut short by the end of an episode is padded and masked.
-`state_dict` / `load_state_dict` let a resumed run keep its replay.
-It lives beside the learner whose `Batch` it fills (svg0_retrace), below every trainer
-that uses it (the low-level expert trainer, hvc.lowlevel.train).
+A ring of named fields in preallocated batch-major numpy arrays, declared once
+(`Field`: per-unroll shape and dtype; `per_step` fields have the unroll's time axis first and
+are sampled time-major, others, like the LSTM state at the unroll's start, stay batch-major).
+`sample` returns torch tensors moved to a device once; `state_dict` / `load_state_dict` let a
+resumed run keep its replay. The low level's SVG(0) + Retrace batches (`Batch`) come from
+`pad_unroll` + `UnrollReplay`; the high level's unrolls are declared in hvc.runtime.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
 
 import numpy as np
 import torch
 
-from hvc.algorithms.svg0_retrace import Batch
 
-_FIELDS = ("obs", "actions", "rewards", "discounts", "log_mu", "mask")
+@dataclass(frozen=True)
+class Field:
+    shape: tuple[int, ...]     # one unroll's, time first if per_step
+    dtype: type = np.float32
+    per_step: bool = True
 
 
 class UnrollReplay:
-    def __init__(self, capacity: int, unroll: int, obs_size: int, action_size: int):
-        self.capacity, self.unroll = int(capacity), int(unroll)
-        self.obs = np.zeros((capacity, unroll + 1, obs_size), np.float32)
-        self.actions = np.zeros((capacity, unroll, action_size), np.float32)
-        self.rewards = np.zeros((capacity, unroll), np.float32)
-        self.discounts = np.zeros((capacity, unroll), np.float32)
-        self.log_mu = np.zeros((capacity, unroll), np.float32)
-        self.mask = np.zeros((capacity, unroll), np.float32)
+    def __init__(self, capacity: int, fields: Mapping[str, Field]):
+        self.capacity = int(capacity)
+        self.fields = dict(fields)
+        self.arrays = {name: np.zeros((self.capacity, *f.shape), f.dtype) for name, f in self.fields.items()}
         self.position = 0
         self.size = 0
 
-    def add(self, obs, actions, rewards, discounts, log_mu) -> None:
-        """One unroll of k <= unroll steps: obs has k + 1 rows (the last is the next obs)."""
-        k = len(actions)
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.arrays.values())
+
+    def add(self, **values) -> None:
+        """One unroll: a value for every field."""
+        missing = self.fields.keys() - values.keys()
+        if missing:
+            raise ValueError(f"unroll without fields {sorted(missing)}")
         i = self.position
-        self.obs[i, :k + 1] = obs
-        self.obs[i, k + 1:] = obs[-1]
-        self.actions[i, :k] = actions
-        self.actions[i, k:] = 0
-        for name, values in (("rewards", rewards), ("discounts", discounts), ("log_mu", log_mu)):
-            arr = getattr(self, name)
-            arr[i, :k] = values
-            arr[i, k:] = 0
-        self.mask[i, :k] = 1
-        self.mask[i, k:] = 0
+        for name, value in values.items():
+            self.arrays[name][i] = value
         self.position = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
-    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
-        idx = rng.integers(0, self.size, batch_size)
-        return Batch(**{name: torch.from_numpy(np.swapaxes(getattr(self, name)[idx], 0, 1).copy())
-                        for name in _FIELDS})
+    def sample(self, batch: int, rng: np.random.Generator, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+        """`batch` unrolls drawn uniformly with replacement; per-step fields time-major."""
+        idx = rng.integers(0, self.size, batch)
+        out = {}
+        for name, field in self.fields.items():
+            rows = self.arrays[name][idx]
+            out[name] = torch.from_numpy(np.swapaxes(rows, 0, 1).copy() if field.per_step else rows).to(device)
+        return out
 
     def state_dict(self) -> dict:
         return {"position": self.position, "size": self.size,
-                **{name: torch.from_numpy(getattr(self, name)[:self.size].copy()) for name in _FIELDS}}
+                **{name: torch.from_numpy(a[:self.size].copy()) for name, a in self.arrays.items()}}
 
     def load_state_dict(self, state: dict) -> None:
         self.position, self.size = int(state["position"]), int(state["size"])
-        for name in _FIELDS:
-            getattr(self, name)[:self.size] = state[name].numpy()
+        for name, array in self.arrays.items():
+            array[:self.size] = state[name].numpy()
+
+
+def svg0_fields(unroll: int, obs_size: int, action_size: int) -> dict[str, Field]:
+    """The low level's unrolls: what hvc.algorithms.svg0_retrace.Batch holds."""
+    return {"obs": Field((unroll + 1, obs_size)), "actions": Field((unroll, action_size)),
+            **{name: Field((unroll,)) for name in ("rewards", "discounts", "log_mu", "mask")}}
+
+
+def pad_unroll(unroll: int, obs, actions, rewards, discounts, log_mu) -> dict[str, np.ndarray]:
+    """An unroll of k <= `unroll` steps (an episode ended) padded to full length: obs (k + 1
+    rows, the last the next obs) repeats its last row, the rest are zero, and mask marks the
+    k real steps."""
+    k = len(actions)
+    obs = np.asarray(obs, np.float32)
+    pad = unroll - k
+    step = lambda x: np.concatenate([np.asarray(x, np.float32), np.zeros((pad, *np.shape(x)[1:]), np.float32)])  # noqa: E731
+    return {"obs": np.concatenate([obs, np.repeat(obs[-1:], pad, 0)]), "actions": step(actions),
+            "rewards": step(rewards), "discounts": step(discounts), "log_mu": step(log_mu),
+            "mask": step(np.ones(k))}

@@ -23,6 +23,11 @@ def retrace_targets(rewards: torch.Tensor, discounts: torch.Tensor, q_taken: tor
     return targets
 
 
-def truncated_traces(log_pi: torch.Tensor, log_mu: torch.Tensor, lam: float = 1.0) -> torch.Tensor:
-    """c_t = lambda * min(1, pi(a_t|s_t) / mu(a_t|s_t))."""
-    return lam * torch.exp(torch.clamp(log_pi - log_mu, max=0.0))
+def truncated_traces(log_pi: torch.Tensor, log_mu: torch.Tensor, lam: float = 1.0,
+                     chose: torch.Tensor | None = None) -> torch.Tensor:
+    """c_t = lambda * min(1, pi(a_t|s_t) / mu(a_t|s_t)); where `chose` is 0 (a high-level step
+    that held its action: the behaviour chose nothing) the ratio is 1."""
+    log_ratio = log_pi - log_mu
+    if chose is not None:
+        log_ratio = log_ratio * chose
+    return lam * torch.exp(torch.clamp(log_ratio, max=0.0))

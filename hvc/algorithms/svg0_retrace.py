@@ -1,4 +1,4 @@
-"""SVG(0) policy updates through a Retrace-trained Q (Sec. 2.1, low-level RL; Appendix A).
+"""SVG(0) policy updates through a Retrace-trained Q, at both levels (Sec. 2.1; Appendix A.3, A.5).
 
 Critic: Q(s_t, a_t) regressed on Retrace targets computed with target networks, traces
 c = lambda min(1, pi_target / mu) from the behaviour log-probabilities stored in replay.
@@ -6,7 +6,10 @@ Actor (SVG(0)): maximise E_{a ~ pi(.|s)} Q_target(s, a) by the reparameterised s
 a = mu(s) + sigma * xi, minus eta KL(pi || pi_target), which keeps each update
 conservative. With the low level's fixed sigma the KL is ||mu - mu_target||^2 / (2 sigma^2).
 Target networks are hard copies refreshed every `target_update_period` learner steps.
-Batches are time-major sequences: obs [T+1, B], actions/rewards/discounts/log_mu/mask [T, B].
+One policy loss (`svg0_policy_loss`) for both levels: `SVG0Retrace`, the low level's MLP
+policy and critic on time-major batches (obs [T+1, B], actions/rewards/discounts/log_mu/mask
+[T, B]), and `RecurrentSVG0Retrace`, the high-level LSTM agent's for continuous controllers
+(steerable, end to end), replaying unrolls from their stored LSTM state.
 """
 from __future__ import annotations
 
@@ -16,10 +19,14 @@ from typing import Mapping
 
 import torch
 
+import numpy as np
+
 from hvc.agents.mlp import GaussianPolicy, QNetwork, gaussian_log_prob
+from hvc.agents.network import HighLevelAgent
+from hvc.algorithms.learner import Acted, Learner, refresh_on_schedule, restore_optimizer
 from hvc.algorithms.optim import clipped_step
-from hvc.errors import NonFiniteLoss
 from hvc.algorithms.retrace import retrace_targets, truncated_traces
+from hvc.errors import NonFiniteLoss
 
 
 @dataclass
@@ -32,12 +39,22 @@ class Batch:
     mask: torch.Tensor       # [T, B]  0 on padding after an episode ended
 
 
+def svg0_policy_loss(q_pi: torch.Tensor, weight: torch.Tensor, kl: torch.Tensor, kl_cost: float,
+                     bonus: torch.Tensor | float = 0.0) -> torch.Tensor:
+    """SVG(0): -E[Q_target(s, a(xi)) - eta KL(pi || pi_target) (+ bonus)] over the weighted steps.
+    `q_pi` is Q_target at the reparameterised sample a(xi) = mean + sigma xi: the gradient reaches
+    the policy only through the action, since the target networks hold no gradients."""
+    return -((q_pi - kl_cost * kl + bonus) * weight).sum()
+
+
 def kl_fixed_sigma(mean: torch.Tensor, target_mean: torch.Tensor, sigma: float) -> torch.Tensor:
     """KL(N(mean, sigma^2) || N(target_mean, sigma^2)) summed over action dimensions."""
     return ((mean - target_mean) ** 2).sum(-1) / (2 * sigma ** 2)
 
 
-class SVG0Retrace:
+class SVG0Retrace(Learner):
+    """The low level's learner: a Gaussian MLP policy of fixed sigma and an MLP Q."""
+
     def __init__(self, policy: GaussianPolicy, critic: QNetwork, cfg: Mapping):
         self.policy, self.critic = policy, critic
         self.target_policy = copy.deepcopy(policy).requires_grad_(False)
@@ -50,6 +67,14 @@ class SVG0Retrace:
         self.policy_opt = torch.optim.Adam(policy.parameters(), lr=float(cfg["policy_lr"]))
         self.critic_opt = torch.optim.Adam(critic.parameters(), lr=float(cfg["critic_lr"]))
         self.steps = 0
+
+    def act(self, mean: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+        """(a sample of N(mean, sigma^2), its log density) for one step; `mean` comes from the
+        actor's numpy copy of the policy (hvc.agents.mlp.NumpyPolicy)."""
+        sigma = self.policy.sigma
+        noise = rng.standard_normal(mean.shape).astype(np.float32)
+        log_mu = -0.5 * float(noise @ noise) - mean.size * (np.log(sigma) + 0.5 * np.log(2 * np.pi))
+        return mean + sigma * noise, log_mu
 
     def sync_targets(self) -> None:
         self.target_policy.load_state_dict(self.policy.state_dict())
@@ -87,16 +112,14 @@ class SVG0Retrace:
         action = mean + self.policy.sigma * torch.randn_like(mean)
         q_pi = self.target_critic(obs, action)  # the target critic: the critic's step below does not change it
         kl = kl_fixed_sigma(mean, target_mean_all[:-1], self.policy.sigma)
-        policy_loss = ((-q_pi + self.kl_cost * kl) * weight).sum()
+        policy_loss = svg0_policy_loss(q_pi, weight, kl, self.kl_cost)
         if not (torch.isfinite(critic_loss) and torch.isfinite(policy_loss)):  # before either network moves
             raise NonFiniteLoss(f"non-finite loss: critic {float(critic_loss)}, policy {float(policy_loss)}")
         clipped_step(self.critic_opt, critic_loss, self.critic.parameters())
         if train_policy:
             clipped_step(self.policy_opt, policy_loss, self.policy.parameters())
 
-        self.steps += 1
-        if self.steps % self.target_update_period == 0:
-            self.sync_targets()
+        refresh_on_schedule(self, self.target_update_period, self.sync_targets)
         return {"critic_loss": critic_loss.detach().item(), "policy_loss": policy_loss.detach().item(), "kl": float(
             (kl.detach() * weight).sum()), "q": float((q.detach() * weight).sum())}
 
@@ -112,8 +135,126 @@ class SVG0Retrace:
         self.target_policy.load_state_dict(state["target_policy"])
         self.target_critic.load_state_dict(state["target_critic"])
         for opt, key in ((self.policy_opt, "policy_opt"), (self.critic_opt, "critic_opt")):
-            configured = [group["lr"] for group in opt.param_groups]
-            opt.load_state_dict(state[key])
-            for group, lr in zip(opt.param_groups, configured):  # torch would restore the saved rate and
-                group["lr"] = lr                                 # silently ignore a changed *_lr on resume
+            restore_optimizer(opt, state[key], opt.param_groups[0]["lr"])
         self.steps = int(state["steps"])
+
+
+SIGMA_CLIP = (0.1, 1.0)  # the Gaussian policies' sigma bounds when a controller config names none
+MEAN_RAW_LIMIT = 2.0  # |pre-tanh mean| beyond which the policy loss pulls it back (tanh(2) = 0.96)
+
+
+class RecurrentSVG0Retrace(Learner):
+    """SVG(0) + Retrace for the high-level LSTM agent's continuous actions (steerable, end to end).
+
+    The policy head gives a Gaussian (tanh-bounded mean, sigma bounded to `sigma_clip`);
+    sampled actions are clipped to [low, high] for the env. Q(h, a) is an MLP on the LSTM
+    core's output, regressed on Retrace targets from a target copy of the whole agent; the
+    policy maximises Q_target(h, a(xi)) (svg0_policy_loss, the target agent's Q on its own
+    features) at steps where a new action was taken, with an entropy bonus and eta KL(pi ||
+    pi_target). Batches: time-major tensors plus the LSTM state at the unroll's start.
+    """
+
+    def __init__(self, agent: HighLevelAgent, gamma: float, low: float, high: float, learning_rate: float = 1e-4,
+                 sigma_clip=SIGMA_CLIP, entropy_cost: float = 1e-5, retrace_lambda: float = 1.0,
+                 target_update_period: int = 100, value_samples: int = 4, kl_cost: float = 0.0):
+        self.agent = agent
+        self.target = copy.deepcopy(agent).requires_grad_(False)
+        self.optimizer = torch.optim.Adam(agent.parameters(), lr=float(learning_rate))
+        self.gamma, self.learning_rate = float(gamma), float(learning_rate)
+        self.low, self.high = float(low), float(high)
+        self.sigma_clip = tuple(sigma_clip)
+        self.entropy_cost, self.lam, self.kl_cost = float(entropy_cost), float(retrace_lambda), float(kl_cost)
+        self.period, self.value_samples = int(target_update_period), int(value_samples)
+        self.steps = 0
+
+    @classmethod
+    def from_config(cls, agent: HighLevelAgent, cfg, space, controller=None, **extra):
+        """From a job's config: gamma from task.agent, the action range from the controller's
+        `steering_range` or the action space, the rest from `algorithm` (defaults above)."""
+        algorithm, ctrl = cfg.algorithm, cfg.controller
+        low, high = (float(v) for v in ctrl.get("steering_range") or (space.low, space.high))
+        keys = ("learning_rate", "entropy_cost", "retrace_lambda", "target_update_period", "value_samples", "kl_cost")
+        return cls(agent, float(cfg.task.agent.gamma), low, high, sigma_clip=tuple(ctrl.get("sigma_clip", SIGMA_CLIP)),
+                   **{k: algorithm[k] for k in keys if k in algorithm}, **extra)
+
+    def distribution(self, agent: HighLevelAgent, policy_out: torch.Tensor) -> torch.distributions.Normal:
+        mean, sigma = agent.gaussian(policy_out, self.low, self.high, self.sigma_clip)
+        return torch.distributions.Normal(mean, sigma)
+
+    def clip(self, action):
+        """What the env and Q see of a raw sample (numpy or torch)."""
+        if isinstance(action, np.ndarray):
+            return np.clip(action, self.low, self.high)
+        return torch.clamp(action, self.low, self.high)
+
+    @torch.no_grad()
+    def act(self, policy_out: torch.Tensor, h: torch.Tensor) -> Acted:
+        """The env gets `clip(raw)`; replay keeps the raw sample, whose density is exact: a
+        clipped value has a probability mass at the bound, and a ratio of densities there is not
+        the ratio of probabilities Retrace needs. The agent's next input is what the env got."""
+        dist = self.distribution(self.agent, policy_out)
+        action = dist.sample()
+        raw = action.cpu().numpy().astype(np.float32)
+        sent = self.clip(raw)
+        return Acted(send=sent, action=raw, log_mu=dist.log_prob(action).sum(-1).cpu().numpy(), seen=sent)
+
+    def replay_unrolls(self, b: dict) -> tuple[torch.Tensor, ...]:
+        """The online agent (with gradients) and the target agent (without) over the sampled
+        unrolls from their stored LSTM states: (out, h, target out, target h)."""
+        state = self.agent.unpack_state(b["state"])
+        self.target.normalizer.load_state_dict(self.agent.normalizer.state_dict())  # one input scale for both
+        args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
+        out, h, _ = self.agent(*args, state, image=b.get("image"), done=b["first"])
+        with torch.no_grad():
+            t_out, t_h, _ = self.target(*args, state, image=b.get("image"), done=b["first"])
+        return out, h, t_out, t_h
+
+    def update(self, b: dict) -> dict[str, float]:
+        out, h, t_out, t_h = self.replay_unrolls(b)
+        with torch.no_grad():
+            t_dist = self.distribution(self.target, t_out)
+            q_taken = self.target.values(t_h[:-1], self.clip(b["action"]))
+            v_next = torch.stack([self.target.values(t_h[1:], self.clip(t_dist.sample()[1:]))
+                                  for _ in range(self.value_samples)]).mean(0)
+            log_pi = self.distribution(self.target, t_out[:-1]).log_prob(b["action"]).sum(-1)  # raw: exact
+            # held steps chose nothing: their trace is lambda (ratio 1)
+            traces = truncated_traces(log_pi, b["log_mu"], self.lam, b["new_action"])
+            targets = retrace_targets(b["reward"], b["discount"], q_taken, v_next, traces, self.gamma)
+        q = self.agent.values(h[:-1], self.clip(b["action"]))
+        critic_loss = 0.5 * ((q - targets) ** 2).mean()
+        return self.step(critic_loss, out, b, q, t_out, t_h)
+
+    def step(self, critic_loss: torch.Tensor, out: torch.Tensor, b: dict, q: torch.Tensor,
+             target_out: torch.Tensor, target_h: torch.Tensor) -> dict[str, float]:
+        """Adds the SVG(0) policy loss to `critic_loss`, takes one optimiser step and refreshes
+        the target agent on schedule."""
+        dist = self.distribution(self.agent, out[:-1])
+        # Q is only ever trained on actions inside the range (actors clip them): a sample outside
+        # it is clipped too, so Q's extrapolation cannot drag the mean past the bounds
+        q_pi = self.target.values(target_h[:-1], self.clip(dist.rsample()))
+        weight = b["new_action"] / b["new_action"].sum().clamp(min=1.0)
+        entropy = dist.entropy().sum(-1)
+        # keeps the mean's tanh out of saturation, where its gradient vanishes and a policy
+        # pinned to a bound could never follow a critic that later changes its mind
+        mean_raw = out[:-1].chunk(2, -1)[0]
+        saturation = (torch.relu(mean_raw.abs() - MEAN_RAW_LIMIT) ** 2).sum(-1)
+        kl = torch.zeros_like(entropy)
+        if self.kl_cost > 0:
+            kl = torch.distributions.kl_divergence(dist, self.distribution(self.target, target_out[:-1])).sum(-1)
+        policy_loss = svg0_policy_loss(q_pi, weight, kl, self.kl_cost, self.entropy_cost * entropy - saturation)
+        clipped_step(self.optimizer, critic_loss + policy_loss, self.agent.parameters())
+        refresh_on_schedule(self, self.period, lambda: self.target.load_state_dict(self.agent.state_dict()))
+        return {"critic_loss": critic_loss.detach().item(), "policy_loss": policy_loss.detach().item(),
+                "q": float(q.detach().mean()), "entropy": float((entropy.detach() * weight).sum()),
+                "kl": float((kl.detach() * weight).sum())}
+
+    def state_dict(self) -> dict:
+        """The high-level checkpoint's learner part (its keys sit at the checkpoint's top level)."""
+        return {"agent": self.agent.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "target_agent": self.target.state_dict(), "learner_steps": self.steps}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.agent.load_state_dict(state["agent"])
+        restore_optimizer(self.optimizer, state["optimizer"], self.learning_rate)
+        self.target.load_state_dict(state["target_agent"])
+        self.steps = int(state.get("learner_steps", state.get("counters", {}).get("updates", 0)))

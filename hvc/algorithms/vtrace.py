@@ -7,13 +7,18 @@ Targets, time-major [T, B]:
 Policy-gradient advantage: rho_t (r_t + gamma d_t v_{t+1} - V(x_t)).
 As in the paper, the value loss applies at every step but the policy-gradient and
 entropy terms only where a new high-level action was sampled (`new_action` mask); with
-an N-step unroll the bootstrap is from the unroll's last state.
+an N-step unroll the bootstrap is from the unroll's last state. `VTraceLearner` is the
+high-level LSTM agent's learner for the discrete controllers (fragments, switching).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import torch
+
+from hvc.agents.network import HighLevelAgent
+from hvc.algorithms.learner import Acted, Learner, restore_optimizer
+from hvc.algorithms.optim import clipped_step
 
 
 @dataclass
@@ -59,3 +64,52 @@ def vtrace_losses(logits: torch.Tensor, actions: torch.Tensor, values: torch.Ten
     value_loss = 0.5 * (((returns.vs - values) ** 2) * mask).sum() / n
     total = pg_loss + baseline_cost * value_loss + entropy_cost * entropy_loss
     return {"loss": total, "pg_loss": pg_loss, "value_loss": value_loss, "entropy": (entropy * pg_mask).sum() / n_pg}
+
+
+class VTraceLearner(Learner):
+    """V-trace actor-critic on replayed unrolls of the LSTM agent (a categorical policy and V(h)).
+    Held steps, where the controller chose nothing, have rho = 1 and no policy-gradient term."""
+
+    def __init__(self, agent: HighLevelAgent, gamma: float, learning_rate: float = 1e-4, entropy_cost: float = 0.01,
+                 rho_clip: float = 1.0, c_clip: float = 1.0):
+        self.agent = agent
+        self.optimizer = torch.optim.Adam(agent.parameters(), lr=float(learning_rate))
+        self.gamma, self.learning_rate, self.entropy_cost = float(gamma), float(learning_rate), float(entropy_cost)
+        self.rho_clip, self.c_clip = float(rho_clip), float(c_clip)
+        self.steps = 0
+
+    @classmethod
+    def from_config(cls, agent: HighLevelAgent, cfg, space=None, controller=None):
+        keys = ("learning_rate", "entropy_cost", "rho_clip", "c_clip")
+        return cls(agent, float(cfg.task.agent.gamma), **{k: cfg.algorithm[k] for k in keys if k in cfg.algorithm})
+
+    @torch.no_grad()
+    def act(self, policy_out: torch.Tensor, h: torch.Tensor) -> Acted:
+        dist = torch.distributions.Categorical(logits=policy_out)
+        action = dist.sample()
+        chosen = action.cpu().numpy()
+        return Acted(send=chosen, action=chosen, log_mu=dist.log_prob(action).cpu().numpy(), seen=chosen)
+
+    def update(self, b: dict) -> dict[str, float]:
+        agent = self.agent
+        logits, h, _ = agent(b["proprio"], b["task"], b["prev_reward"], b["prev_action"],
+                             agent.unpack_state(b["state"]), image=b.get("image"), done=b["first"])
+        values = agent.values(h)
+        log_pi = torch.log_softmax(logits[:-1], -1).gather(-1, b["action"][..., None]).squeeze(-1)
+        log_rhos = (log_pi.detach() - b["log_mu"]) * b["new_action"]  # held steps chose nothing: rho = 1
+        returns = vtrace_targets(log_rhos, b["discount"], b["reward"], values[:-1].detach(), values[-1].detach(),
+                                 self.gamma, self.rho_clip, self.c_clip)
+        losses = vtrace_losses(logits[:-1], b["action"], values[:-1], returns, b["new_action"],
+                               torch.ones_like(b["reward"]), self.entropy_cost)
+        clipped_step(self.optimizer, losses["loss"], agent.parameters())
+        self.steps += 1
+        return {k: float(v.detach()) for k, v in losses.items()}
+
+    def state_dict(self) -> dict:
+        """The high-level checkpoint's learner part (its keys sit at the checkpoint's top level)."""
+        return {"agent": self.agent.state_dict(), "optimizer": self.optimizer.state_dict(), "learner_steps": self.steps}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.agent.load_state_dict(state["agent"])
+        restore_optimizer(self.optimizer, state["optimizer"], self.learning_rate)
+        self.steps = int(state.get("learner_steps", state.get("counters", {}).get("updates", 0)))

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import errno
 import io
+import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
+import numpy as np
 import torch
 
 from hvc.errors import HvcUserError
@@ -45,3 +47,23 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
     buffer = io.BytesIO()
     torch.save(state, buffer)
     write_atomically(path, buffer.getbuffer())
+
+
+def random_states(generators: Mapping[str, np.random.Generator], device: torch.device | None = None) -> dict:
+    """Every random stream a run draws from, for its checkpoint: numpy generators by name (as
+    JSON), torch's CPU stream and, for a run on CUDA, the device's."""
+    out: dict[str, Any] = {name: json.dumps(g.bit_generator.state) for name, g in generators.items()}
+    out["torch_rng"] = torch.get_rng_state()
+    if device is not None and torch.device(device).type == "cuda":
+        out["cuda_rng"] = torch.cuda.get_rng_state(device)
+    return out
+
+
+def restore_random_states(state: Mapping[str, Any], generators: Mapping[str, np.random.Generator],
+                          device: torch.device | None = None) -> None:
+    """Undoes random_states: a resumed run draws what it would have drawn had it not stopped."""
+    for name, g in generators.items():
+        g.bit_generator.state = json.loads(state[name])
+    torch.set_rng_state(state["torch_rng"])
+    if device is not None and torch.device(device).type == "cuda" and "cuda_rng" in state:
+        torch.cuda.set_rng_state(state["cuda_rng"], device)

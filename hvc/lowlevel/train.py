@@ -29,11 +29,11 @@ import torch
 from torch import nn
 
 from hvc.agents.mlp import GaussianPolicy, NumpyPolicy, QNetwork
-from hvc.algorithms.replay import UnrollReplay
-from hvc.algorithms.svg0_retrace import SVG0Retrace
+from hvc.algorithms.replay import UnrollReplay, pad_unroll, svg0_fields
+from hvc.algorithms.svg0_retrace import Batch, SVG0Retrace
 from hvc.envs.fast_env import FastEnv
 from hvc.errors import NonFiniteLoss
-from hvc.io.checkpoint import save_checkpoint
+from hvc.io.checkpoint import random_states, restore_random_states, save_checkpoint
 from hvc.io.metrics import continue_metrics
 from hvc.lowlevel.evaluation import evaluate
 from hvc.lowlevel.library import policy_observation
@@ -151,14 +151,6 @@ class StopRequest:
         self.requested = True
 
 
-def _rng_state(rng: np.random.Generator) -> str:
-    return json.dumps(rng.bit_generator.state)
-
-
-def _set_rng_state(rng: np.random.Generator, state: str) -> None:
-    rng.bit_generator.state = json.loads(state)
-
-
 def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, out_dir: Path,
                  total_steps: int, seed: int = 0, parent_pid: int | None = None,
                  warm_start: NumpyPolicy | list[NumpyPolicy] | None = None) -> dict[str, float]:
@@ -187,7 +179,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     policy = GaussianPolicy(obs_size, env.action_size, cfg["hidden"], sigma)  # reads the first obs_size columns
     critic = QNetwork(state_size, env.action_size, cfg["critic_hidden"])
     learner = SVG0Retrace(policy, critic, cfg)
-    replay = UnrollReplay(int(cfg["replay_unrolls"]), int(cfg["unroll"]), state_size, env.action_size)
+    replay = UnrollReplay(int(cfg["replay_unrolls"]), svg0_fields(int(cfg["unroll"]), state_size, env.action_size))
     checkpoint = out_dir / "checkpoint.pt"
     counters = {"env_steps": 0, "episodes": 0, "critic_only_until": 0}
     state = torch.load(checkpoint, weights_only=True) if checkpoint.exists() else None
@@ -196,9 +188,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         learner.load_state_dict(state["learner"])
         replay.load_state_dict(state["replay"])
         counters.update({k: int(v) for k, v in state["counters"].items()})
-        _set_rng_state(rng, state["rng"])
-        _set_rng_state(env.rng, state["env_rng"])
-        torch.set_rng_state(state["torch_rng"])
+        restore_random_states(state, {"rng": rng, "env_rng": env.rng})
     elif warm_start is not None:
         if isinstance(warm_start, NumpyPolicy):
             ref_obs, _ = reference_dataset(env)
@@ -228,8 +218,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
 
     def save() -> None:
         save_checkpoint({"learner": learner.state_dict(), "replay": replay.state_dict(), "counters": counters,
-                         "rng": _rng_state(rng), "env_rng": _rng_state(env.rng),
-                         "torch_rng": torch.get_rng_state(), "metrics": metrics.mark()}, checkpoint)
+                         **random_states({"rng": rng, "env_rng": env.rng}), "metrics": metrics.mark()}, checkpoint)
 
     if state is None:
         save()  # behaviour cloning done: a kill from here on loses at most one interval
@@ -248,15 +237,13 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         seq_obs, seq_act, seq_rew, seq_disc, seq_logmu = [stored(obs)], [], [], [], []
         done = False
         for _ in range(unroll):
-            mean = actor(seq_obs[-1][:obs_size])
-            noise = rng.standard_normal(mean.shape).astype(np.float32)
-            action = mean + sigma * noise
+            action, log_mu = learner.act(actor(seq_obs[-1][:obs_size]), rng)
             obs, reward, discount, done = env.step(action)
             seq_obs.append(stored(obs))
             seq_act.append(action)
             seq_rew.append(reward)
             seq_disc.append(discount)
-            seq_logmu.append(-0.5 * float(noise @ noise) - action.size * (np.log(sigma) + 0.5 * np.log(2 * np.pi)))
+            seq_logmu.append(log_mu)
             step_rewards.append(reward)
             counters["env_steps"] += 1
             if done:
@@ -264,13 +251,13 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
                 completions.append(logic.completion)
                 counters["episodes"] += 1
                 break
-        replay.add(np.asarray(seq_obs), np.asarray(seq_act), seq_rew, seq_disc, seq_logmu)
+        replay.add(**pad_unroll(unroll, seq_obs, seq_act, seq_rew, seq_disc, seq_logmu))
         if done:
             obs = env.reset()
         if replay.size >= int(cfg["min_replay_unrolls"]):
             for _ in range(int(cfg["updates_per_unroll"])):
                 try:
-                    info = learner.update(replay.sample(batch_size, rng),
+                    info = learner.update(Batch(**replay.sample(batch_size, rng)),
                                           train_policy=learner.steps >= counters["critic_only_until"])
                 except NonFiniteLoss as error:
                     raise NonFiniteLoss(f"{error} at env step {counters['env_steps']} in {out_dir}; "

@@ -32,14 +32,12 @@ class EpisodeRecorder:
                                         "proprio": [], "task": [], "query": []}
 
     @classmethod
-    def for_run(cls, cfg, run_dir: Path) -> "EpisodeRecorder":
+    def for_run(cls, cfg, run_dir: Path, skills=None) -> "EpisodeRecorder":
         """`cfg.record_episodes` episodes under run_dir/episodes, with fragments.csv beside them
-        when the actions are fragment indices."""
+        when the actions are fragment indices (`skills`: the job's, hvc.skills)."""
         recorder = cls(run_dir / "episodes", int(cfg.record_episodes))
         if recorder.active and cfg.controller.name in ("fragments", "query"):
-            from hvc.skills import skills_for_job
-
-            write_fragment_table(run_dir / "fragments.csv", skills_for_job(cfg))
+            write_fragment_table(run_dir / "fragments.csv", skills)
         return recorder
 
     @property

@@ -19,8 +19,9 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from hvc.errors import HvcUserError
+from hvc.runtime.acting import Actor
 from hvc.runtime.episodes import EpisodeRecorder
-from hvc.runtime.hl_train import act, build_agent, carry, load_checkpoint, make_envs, sees_clipped_actions
+from hvc.runtime.hl_train import build_agent, load_checkpoint, make_envs
 from hvc.skills import skills_for_job
 
 log = logging.getLogger(__name__)
@@ -57,30 +58,18 @@ def run_record(cfg: DictConfig, run_dir: Path) -> dict:
     state = load_checkpoint(source / "checkpoint.pt")
     envs = make_envs(trained)
     try:
-        spec, agent, learner = build_agent(trained, envs)
+        _, agent, learner = build_agent(trained, envs)
         agent.load_state_dict(state["agent"])
         agent.eval()
         shutil.copy(source / "checkpoint.pt", run_dir / "checkpoint.pt")  # for analysis/saliency.py
-        recorder = EpisodeRecorder.for_run(trained, run_dir)
-        obs = envs.reset()
-        lstm = agent.initial_state(1)
-        prev_reward, first = np.zeros(1, np.float32), np.ones(1, np.float32)
-        prev_action = np.zeros(1, np.int64) if spec.discrete else np.zeros((1, spec.action_size), np.float32)
-        clipped = sees_clipped_actions(learner)
+        recorder = EpisodeRecorder.for_run(trained, run_dir, envs.skills)
+        actor = Actor(agent, learner, envs, recorder, update_normalizer=False)
         returns: list[float] = []
-        query_in_force = None  # the query controller's query, kept while its fragment plays
         with tqdm(total=recorder.max_episodes, desc="record", unit="episode", disable=None) as bar:
             while recorder.active:
-                send, action, _, lstm, query = act(agent, learner, obs, prev_reward, prev_action, first, lstm)
-                before = {k: v[0] for k, v in obs.items()}
-                obs, rewards, _, dones, infos = envs.step(send)
-                if query is not None and (query_in_force is None or infos[0].get("new_action", True)):
-                    query_in_force = query[0]
-                recorder.add(before, float(rewards[0]), infos[0], bool(dones[0]), query=query_in_force)
-                _, _, prev_reward, prev_action, first = carry(action, prev_action, rewards, dones, infos,
-                                                              seen=send if clipped else None)
-                if "episode_return" in infos[0]:
-                    returns.append(float(infos[0]["episode_return"]))
+                info = actor.step().infos[0]
+                if "episode_return" in info:
+                    returns.append(float(info["episode_return"]))
                     bar.update(1)
                     bar.set_postfix(ret=f"{np.mean(returns):.1f}")
     finally:
