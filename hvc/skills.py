@@ -29,7 +29,7 @@ from hvc.errors import ControllerUnavailable
 
 log = logging.getLogger(__name__)
 
-# Controllers that run one policy of their own rather than a clip set's experts.
+# Shipped libraries of controllers with a policy of their own (`skills: own`), not experts of clips.
 OWN_POLICY = ("steerable", "switching")
 # Entry fields that identify an expert's skill; the behaviour label is the set's own name for it.
 _SKILL_FIELDS = ("id", "start", "end", "cyclic", "steps", "steer")
@@ -94,10 +94,10 @@ class Skills:
 def skill_set(cfg: DictConfig) -> str | None:
     """The name the job's skills go by: the clip set, or the steerable/switching policy's
     own; None for a controller without skills (end to end)."""
-    name = str(cfg.controller.name)
-    if name == "end_to_end":
+    kind = cfg.controller.get("skills", "clip_set")
+    if kind == "none":
         return None
-    return name if name in OWN_POLICY else str(cfg.clips.name)
+    return str(cfg.controller.name) if kind == "own" else str(cfg.clips.name)
 
 
 def named_library(cfg: DictConfig, set_name: str) -> str | None:
@@ -165,7 +165,7 @@ def skills_for_job(cfg: DictConfig) -> Skills | None:
     set_name = skill_set(cfg)
     if set_name is None:
         return None
-    fragment_len = None if set_name in OWN_POLICY else int(cfg.fragment_len)
+    fragment_len = _fragment_len(cfg)
     libraries = cfg.get("libraries")  # absent from the saved config of a run older than the key
     key = json.dumps([str(cfg.controller.name), set_name, named_library(cfg, set_name),
                       OmegaConf.to_container(libraries, resolve=True) if libraries is not None else {}, fragment_len,
@@ -184,14 +184,14 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
     controller, set_name = str(cfg.controller.name), skill_set(cfg)
     if set_name is None:
         return None
-    fragment_len = None if controller in OWN_POLICY else int(cfg.fragment_len)
+    fragment_len = _fragment_len(cfg)
     named = named_library(cfg, set_name)
     if named:
         return Skills(controller, set_name, load_library(named), str(named), fragment_len)
     shipped = SHIPPED_DIR / f"experts_{set_name}.npz"
     if shipped.is_file():
         return Skills(controller, set_name, load_library(shipped), f"shipped {shipped.name}", fragment_len)
-    if controller in OWN_POLICY:
+    if cfg.controller.get("skills") == "own":
         raise ControllerUnavailable(
             f"controller={controller} needs the {controller} low-level policy and none is shipped: train it with "
             f"`hvc-run stage=lowlevel clips={controller}`, then pass libraries.{controller}=<run dir>/"
@@ -212,6 +212,11 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
     assembled_from = {f"{e.behaviour} ({e.id})": where for e, where in zip(entries, found)}
     return Skills(controller, set_name, library,
                   f"assembled from {', '.join(sorted(set(found)))}", fragment_len, assembled_from)
+
+
+def _fragment_len(cfg: DictConfig) -> int | None:
+    """Controllers that drive a clip set's experts cut them into fragments of `fragment_len`."""
+    return int(cfg.fragment_len) if cfg.controller.get("skills", "clip_set") == "clip_set" else None
 
 
 def load_library(path: str | Path):

@@ -58,7 +58,7 @@ def test_tasks_bring_their_clip_sets_and_timesteps():
 @pytest.mark.parametrize("value", [1, 3, 10, 57])
 def test_fragment_len_accepts_any_positive_integer(value):
     cfg = compose([f"fragment_len={value}"])
-    assert cfg.controller.fragment_len == value
+    assert cfg.fragment_len == value
 
 
 @pytest.mark.parametrize("value", ["0", "-3", "2.5", "abc"])

@@ -36,6 +36,7 @@ class Learner(ABC):
 
     steps: int = 0  # learner updates taken (target refreshes follow it)
     uses_controller: bool = False  # from_config wants the job's controller (Wolpertinger: its keys)
+    keeps_query: bool = False  # replay keeps Acted.query beside the action (Wolpertinger)
 
     @abstractmethod
     def act(self, *args, **kwargs) -> Any:

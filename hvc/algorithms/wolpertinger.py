@@ -22,6 +22,7 @@ class WolpertingerLearner(RecurrentSVG0Retrace):
     `nearest(query)`; the index of the chosen fragment is what the envs get."""
 
     uses_controller = True
+    keeps_query = True
 
     def __init__(self, agent, gamma: float, low: float, high: float, selector, temperature: float = 1.0,
                  seed: int = 0, **kwargs):

@@ -9,8 +9,14 @@ from hvc.envs.spaces import ActionSpace
 
 
 class Controller(Protocol):
+    """What ControlledEnv drives. A controller class is named by its config's `_target_` and
+    built by `from_config(config, env, skills)` (hvc.controllers.factory); `start_references`
+    (optional) are the mocap references whose poses start the tasks' episodes."""
+
     action_space: ActionSpace
 
+    @classmethod
+    def from_config(cls, config: Any, env: Any, skills: Any) -> "Controller": ...
     def reset(self) -> None: ...
     def needs_action(self) -> bool: ...
     def set_action(self, action: Any) -> None: ...

@@ -13,6 +13,10 @@ class EndToEndController:
                                         high=float(self.high.max()))
         self._action = None
 
+    @classmethod
+    def from_config(cls, config, env, skills=None) -> "EndToEndController":
+        return cls(env.action_low, env.action_high)
+
     def reset(self) -> None:
         self._action = None
 

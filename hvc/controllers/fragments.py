@@ -24,6 +24,10 @@ class FragmentsController:
         self.index = -1  # the running fragment's index (episode records)
         self.step_in_fragment = 0
 
+    @classmethod
+    def from_config(cls, config, env, skills) -> "FragmentsController":
+        return cls(skills)
+
     @property
     def start_references(self) -> list:
         return [e.reference for e in self.library.experts]

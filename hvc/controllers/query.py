@@ -23,6 +23,10 @@ class QueryController(FragmentsController):
         self.selection_space = self.action_space
         self.action_space = ActionSpace(discrete=False, size=self.keys.shape[1], low=-3.0, high=3.0)
 
+    @classmethod
+    def from_config(cls, config, env, skills) -> "QueryController":
+        return cls(skills, int(config["k_nearest"]))
+
     def nearest(self, query: np.ndarray) -> np.ndarray:
         """Indices of the k fragments whose keys are nearest the query (Euclidean)."""
         d = np.sum((self.keys - np.asarray(query, np.float32)) ** 2, axis=1)

@@ -21,6 +21,11 @@ class SteerableController:
         self.actuator_order = actuator_order()
         self.rate, self.held, self.t = 0.0, self.cycle, None
 
+    @classmethod
+    def from_config(cls, config, env, skills) -> "SteerableController":
+        """The job's steerable policy (its library's one expert)."""
+        return cls(skills.library.experts[0], config.get("steering_range", (-1.5, 1.5)))
+
     @property
     def start_references(self) -> list:
         return [self.expert.reference]

@@ -8,6 +8,7 @@ import numpy as np
 
 from hvc.controllers.pose_matching import actuator_order, best_matching_step
 from hvc.envs.spaces import ActionSpace
+from hvc.errors import ControllerUnavailable
 from hvc.mocap.reference import cycle_steps
 
 
@@ -30,6 +31,12 @@ class SwitchingController:
         self.hold = gait_cycle_steps(behaviours) if hold_steps is None else int(hold_steps)
         self.action_space = ActionSpace(discrete=True, n=len(behaviours))
         self.current, self.t, self.held = None, 0, self.hold
+
+    @classmethod
+    def from_config(cls, config, env, skills) -> "SwitchingController":
+        """The job's switching policy (its library's one expert) over the behaviours it was trained on."""
+        library = skills.library
+        return cls(library.experts[0], _behaviours(library), config.get("hold_steps"))
 
     @property
     def start_references(self) -> list:
@@ -64,3 +71,18 @@ class SwitchingController:
         code = np.zeros(len(self.behaviours), np.float32)
         code[self.current] = 1.0
         return self.expert.act(np.concatenate([obs["proprio"], [ref.phase[t]], code]).astype(np.float32))
+
+
+def _behaviours(library) -> list:
+    """The switching policy's behaviour references: stored in the library, or (libraries made
+    before they were) rebuilt from the entries it was trained on."""
+    if library.behaviours:
+        return library.behaviours
+    from hvc.mocap.reference import build_reference
+    from hvc.mocap.source import find_mocap_file
+
+    entries = library.meta.get("switching_entries")
+    if not entries:
+        raise ControllerUnavailable("this switching library does not list its behaviours (switching_entries)")
+    mocap_file = str(find_mocap_file(None, "2019"))
+    return [build_reference(e, mocap_file) for e in entries]

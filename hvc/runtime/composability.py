@@ -81,7 +81,7 @@ def cold_switching(cfg: DictConfig, episodes: int, seed: int = 0) -> dict:
 
 def _clip_of_fragment(envs) -> list[str] | None:
     """Fragment index -> the behaviour of its clip, for the fragment controllers."""
-    if envs.controller not in ("fragments", "query") or envs.skills is None:
+    if envs.skills is None or not envs.skills.fragments:
         return None
     experts = envs.skills.library.experts
     return [f"{experts[f.clip].entry['behaviour']}" for f in envs.skills.fragments]

@@ -24,7 +24,7 @@ def _with_start_poses(cfg: DictConfig, task: dict, body: dict) -> dict:
     """Adds the clip set's entries and mocap file, the source of the start poses, to a
     navigation task of the humanoid driven end to end; without a mocap file the body starts
     upright (logged). Controllers with skills start from their own library's references."""
-    if not (task.get("init_from_clips") and body.get("humanoid")) or cfg.controller.name != "end_to_end":
+    if not (task.get("init_from_clips") and body.get("humanoid")) or cfg.controller.get("skills") != "none":
         return task
     from hvc.mocap.clip_sets import entries_of, resolve
     from hvc.mocap.source import find_mocap_file

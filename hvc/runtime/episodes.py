@@ -36,7 +36,7 @@ class EpisodeRecorder:
         """`cfg.record_episodes` episodes under run_dir/episodes, with fragments.csv beside them
         when the actions are fragment indices (`skills`: the job's, hvc.skills)."""
         recorder = cls(run_dir / "episodes", int(cfg.record_episodes))
-        if recorder.active and cfg.controller.name in ("fragments", "query"):
+        if recorder.active and skills is not None and skills.fragments:
             write_fragment_table(run_dir / "fragments.csv", skills)
         return recorder
 

@@ -166,7 +166,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     device = torch_device(cfg.get("device", "cpu"))
     spec, agent, learner = build_agent(cfg, envs, device)
     replay = UnrollReplay(max(batch, int(cfg.task.agent.replay_size) // n),
-                          unroll_fields(spec, n, query=cfg.controller.name == "query"))
+                          unroll_fields(spec, n, query=learner.keeps_query))
     log.info("replay: %d unrolls of %d steps, %.2f GiB", replay.capacity, n, replay.nbytes / 2 ** 30)
     counters = {"env_steps": 0, "updates": 0, "episodes": 0}
     pacer = Pacer(cfg.algorithm.updates_per_unroll)

@@ -18,6 +18,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from hvc.config import CONF_DIR
 from hvc.errors import HvcUserError
 from hvc.runtime.acting import Actor
 from hvc.runtime.episodes import EpisodeRecorder
@@ -35,13 +36,25 @@ def trained_config(cfg: DictConfig) -> DictConfig:
     for name in ("checkpoint.pt", "config_resolved.yaml"):
         if not (source / name).is_file():
             raise HvcUserError(f"from_run={source} has no {name}: not a stage=train run dir")
-    trained = OmegaConf.load(source / "config_resolved.yaml")
+    trained = _with_named_classes(OmegaConf.load(source / "config_resolved.yaml"))
     if trained.stage != "train":
         raise HvcUserError(f"from_run={source} is a stage={trained.stage} run; stage=record plays stage=train runs")
     if int(cfg.record_episodes) <= 0:
         raise HvcUserError(f"stage=record needs record_episodes=N with N > 0, got {cfg.record_episodes}")
     return OmegaConf.merge(trained, {"num_envs": 1, "in_process_envs": 1, "seed": int(cfg.seed),
                                      "record_episodes": int(cfg.record_episodes)})
+
+
+def _with_named_classes(trained: DictConfig) -> DictConfig:
+    """A run trained before the controller and algorithm configs named their classes
+    (`_target_`, the controller's `skills` kind) gets them from today's config of the same name."""
+    for group in ("controller", "algorithm"):
+        node = trained[group]
+        current = OmegaConf.load(CONF_DIR / group / f"{node.name}.yaml")
+        for key in ("_target_", "skills"):
+            if key in current and key not in node:
+                node[key] = current[key]
+    return trained
 
 
 def run_record(cfg: DictConfig, run_dir: Path) -> dict:

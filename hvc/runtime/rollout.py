@@ -42,7 +42,7 @@ def run_rollout(cfg: DictConfig, run_dir: Path) -> dict:
                      f"{env.action_space.n} choices" if env.action_space.discrete else f"{env.action_space.size}-D")
         hl_actions = 0
         recorder = EpisodeRecorder(run_dir / "episodes", int(cfg.record_episodes))
-        if recorder.active and env.controller in ("fragments", "query"):
+        if recorder.active and env.skills is not None and env.skills.fragments:
             write_fragment_table(run_dir / "fragments.csv", env.skills)
         try:
             obs = env.reset()
