@@ -14,7 +14,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.errors import ConfigCompositionException, HydraException, OverrideParseException
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import ConfigAttributeError, ConfigKeyError
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, ValidationError
 
 from hvc.config import CONF_DIR, ConfigError, check_group_overrides, resolve_parallelism, unknown_key, validate
 from hvc.errors import HvcUserError
@@ -264,6 +264,9 @@ def _hydra_error(error: HydraException, argv: list[str]) -> str:
             and cause.full_key:
         given = next((a for a in argv if a.lstrip("+~").partition("=")[0] == cause.full_key), cause.full_key)
         return f"{given}: {unknown_key(cause.full_key, [a for a in argv if not a.startswith('-')])}"
+    if isinstance(error, ConfigCompositionException) and isinstance(cause, ValidationError):
+        # a value of the wrong type for a typed key (hvc.schema): OmegaConf's first line says which
+        return f"{str(error).strip()}: {str(cause).splitlines()[0]}"
     return " ".join(line.strip() for line in str(error).splitlines() if line.strip())
 
 

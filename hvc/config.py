@@ -14,6 +14,9 @@ from typing import Iterable, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
+from hvc.schema import register as register_schemas
+
+register_schemas()  # before any composition: the group files name their schemas (hvc.schema)
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 GROUPS = ("body", "task", "controller", "algorithm", "clips", "reward", "render", "lowlevel", "budget")
 STAGES = ("rollout", "train", "record", "info", "convert", "playback", "openloop", "lowlevel", "evaluate")
@@ -141,11 +144,8 @@ def resolve_parallelism(cfg: DictConfig) -> None:
     main process (steps with the low-level experts or a camera are long enough for a worker
     to pay off). For a body without motion-capture skills (the rolling ball) on a task
     without vision: CHEAP_BODY_ENVS envs, all in the main process.
-    Its step costs less than a worker's round trip: two envs step 3.4x faster in the main
-    process (90 us each) than in two workers. Acting is batched, so more envs cost little more
-    per step and decorrelate the data: 300k steps of go_to_target took 3 minutes with 8 envs
-    against 4.6 with 2, and the last tenth's return was 78, 799 and 57 for seeds 0-2 against
-    43, 66 and 3.5 (random: about 40).
+    Its step costs less than a worker's round trip, and acting is batched, so more envs cost
+    little more per step and decorrelate the data (docs/results/design_measurements).
 
     "Cores" are this job's share of the machine, so that jobs a launcher runs side by side
     (conf/hydra/launcher/) do not oversubscribe it with envs, worker processes and torch
@@ -166,8 +166,8 @@ def resolve_parallelism(cfg: DictConfig) -> None:
                           f"allowed: 0 to num_envs")
     if cfg.torch_threads == "auto":
         # The learner's updates run while the worker envs wait for their next step, so on a
-        # vision task the ResNet's convs can take every core (gaps: 500 against 300 transitions/s
-        # on 2 cores). Without vision the ops are small (LSTMs and MLPs at batch 32).
+        # vision task the ResNet's convs can take every core (docs/results/design_measurements).
+        # Without vision the ops are small (LSTMs and MLPs at batch 32).
         cfg.torch_threads = job_cores() if cfg.task.vision else 1
 
 

@@ -57,7 +57,7 @@ GROUPS: dict[str, tuple[list[str], list[str], list[str] | None]] = {
     # (the resume block of run_hl_training is left out: its mutants would rerun whole training runs)
     "resume": (["hvc/algorithms/replay.py", "hvc/runtime/hl_train.py", "hvc/algorithms/svg0_retrace.py",
                 "hvc/algorithms/vtrace.py", "hvc/algorithms/wolpertinger.py", "hvc/io/checkpoint.py"],
-               ["tests/test_faults.py", "tests/test_lowlevel.py"],
+               ["tests/test_learner_state.py", "tests/test_lowlevel.py"],
                ["hvc.runtime.hl_train.x_load_checkpoint*", "hvc.algorithms.*state_dict*",
                 "hvc.io.checkpoint.x_*random_states*"]),
     "conversion": (["hvc/mocap/convert.py"], ["tests/test_mocap_convert.py"], None),

@@ -79,13 +79,14 @@ def test_continuous_policy_stays_steerable_under_a_critic_that_prefers_a_bound()
     import numpy as np
 
     from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+    from hvc.schema import SVG0RetraceConfig
 
     torch.manual_seed(0)
     spec = AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                      value_mlp=(16, 1), critic_takes_action=True)
     agent = HighLevelAgent(spec)
-    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, learning_rate=1e-2, sigma_clip=(0.1, 1.0),
-                                   entropy_cost=0.0, target_update_period=10**6)
+    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, (0.1, 1.0), SVG0RetraceConfig(
+        learning_rate=1e-2, entropy_cost=0.0, target_update_period=10**6, kl_cost=0.0))
     learner.target.value = _linear_critic(16, 2, 5.0)  # Q_target(h, a) = 5 * sum(a): always "more action"
     batch, T, B = _policy_batch()
     for _ in range(300):
@@ -133,12 +134,13 @@ def test_high_level_svg0_follows_q_target_not_the_online_q():
 
 
     from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+    from hvc.schema import SVG0RetraceConfig
 
     torch.manual_seed(0)
     agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                                      value_mlp=(16, 1), critic_takes_action=True))
-    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, learning_rate=1e-2, sigma_clip=(0.1, 1.0),
-                                   entropy_cost=0.0, target_update_period=10**6)
+    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, (0.1, 1.0), SVG0RetraceConfig(
+        learning_rate=1e-2, entropy_cost=0.0, target_update_period=10**6, kl_cost=0.0))
     agent.value = _linear_critic(16, 2, +5.0)
     learner.target.value = _linear_critic(16, 2, -5.0)
     batch, _, B = _policy_batch()
@@ -195,12 +197,13 @@ def test_a_nan_loss_stops_before_the_weights_or_optimiser_change():
     import pytest
 
     from hvc.algorithms.vtrace import VTraceLearner
+    from hvc.schema import VTraceConfig
     from hvc.errors import NonFiniteLoss
 
     torch.manual_seed(0)
     spec = AgentSpec(proprio_size=3, task_size=0, action_size=4, discrete=True, lstm_size=16, value_mlp=(16, 1))
     agent = HighLevelAgent(spec)
-    learner = VTraceLearner(agent, 0.9, learning_rate=1e-2, entropy_cost=0.01)
+    learner = VTraceLearner(agent, 0.9, VTraceConfig(learning_rate=1e-2))
     optimizer = learner.optimizer
     T, B = 3, 2
     batch = {"proprio": torch.randn(T + 1, B, 3), "task": torch.zeros(T + 1, B, 0),
@@ -259,7 +262,7 @@ def test_continuous_actions_keep_the_raw_sample_and_its_exact_density():
     spec = AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                      value_mlp=(16, 1), critic_takes_action=True)
     agent = HighLevelAgent(spec)
-    learner = RecurrentSVG0Retrace(agent, 0.9, -0.2, 0.2, sigma_clip=(0.9, 1.0))  # sigma >> range: most samples clip
+    learner = RecurrentSVG0Retrace(agent, 0.9, -0.2, 0.2, (0.9, 1.0))  # sigma >> range: most samples clip
     B = 64
     obs = {"proprio": np.random.default_rng(0).normal(size=(B, 3)).astype(np.float32),
            "task": np.zeros((B, 0), np.float32)}
@@ -285,11 +288,13 @@ def test_continuous_learner_refreshes_its_target_agent_on_schedule():
 
 
     from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+    from hvc.schema import SVG0RetraceConfig
 
     torch.manual_seed(0)
     agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                                      value_mlp=(16, 1), critic_takes_action=True))
-    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, learning_rate=1e-2, target_update_period=3)
+    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, (0.1, 1.0),
+                                   SVG0RetraceConfig(learning_rate=1e-2, target_update_period=3, kl_cost=0.0))
     same = lambda: all(torch.equal(a, b) for a, b in zip(agent.state_dict().values(),  # noqa: E731
                                                          learner.target.state_dict().values()))
     history = []
@@ -306,12 +311,14 @@ def test_query_learner_fits_q_to_one_step_targets_on_query_and_selected_key():
     import numpy as np
 
     from hvc.algorithms.wolpertinger import WolpertingerLearner
+    from hvc.schema import WolpertingerConfig
 
     torch.manual_seed(0)
     agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                                      value_mlp=(32, 1), critic_takes_action=True))
     selector = SimpleNamespace(keys=np.zeros((5, 2), np.float32))
-    learner = WolpertingerLearner(agent, 0.9, -3.0, 3.0, selector, learning_rate=3e-3, target_update_period=10)
+    learner = WolpertingerLearner(agent, 0.9, -3.0, 3.0, (0.1, 1.0), selector, 1.0,
+                                  WolpertingerConfig(learning_rate=3e-3, target_update_period=10))
     batch = _continuous_batch()
     batch["new_action"] = torch.zeros_like(batch["new_action"])  # no policy term: Q alone
     first = learner.update(batch)["critic_loss"]
@@ -348,7 +355,19 @@ def test_vtrace_update_sets_rho_to_one_on_held_steps(monkeypatch):
              "first": torch.zeros(T + 1, B), "action": torch.zeros(T, B, dtype=torch.long),
              "log_mu": torch.full((T, B), -9.0), "reward": torch.ones(T, B), "discount": torch.ones(T, B),
              "new_action": new_action, "state": torch.zeros(B, 4, 128)}
-    vtrace.VTraceLearner(agent, 0.9, entropy_cost=0.01).update(batch)
+    vtrace.VTraceLearner(agent, 0.9).update(batch)
     log_rhos = seen["log_rhos"]
     assert torch.all(log_rhos[new_action == 0] == 0)
     assert torch.all(log_rhos[new_action == 1] > 5)  # pi / mu with mu = e^-9
+
+
+def test_the_pacer_owes_the_configured_updates_per_unroll_fractions_included():
+    """updates_per_unroll=0.25 is one update per 4 unrolls, whatever the envs' batching."""
+    from hvc.algorithms.learner import Pacer
+
+    quarter = Pacer(0.25)
+    assert [quarter.owed(1) for _ in range(8)] == [0, 0, 0, 1, 0, 0, 0, 1]
+    assert Pacer(0.25).owed(2) + Pacer(0.25, credit=0.5).owed(2) == 0 + 1
+    assert Pacer(2).owed(3) == 6 and Pacer(1.5).owed(1) == 1
+    resumed = Pacer(0.25, credit=0.75)  # a checkpoint's credit carries over
+    assert resumed.owed(1) == 1 and resumed.credit == 0.0

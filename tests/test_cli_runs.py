@@ -30,7 +30,7 @@ def test_default_main_job_writes_the_run_directory(tmp_path):
     assert metrics.env_steps.max() == steps and metrics.learner_steps.max() > 0
     assert torch.load(run_dir / "checkpoint.pt", weights_only=True)["counters"]["env_steps"] == steps
     assert resolved["seed"] == 4 and resolved["task"]["name"] == "go_to_target"
-    assert resolved["controller"]["fragment_len"] == 3  # interpolations resolved
+    assert resolved["fragment_len"] == 3 and "${" not in (run_dir / "config_resolved.yaml").read_text()  # resolved
 
 
 def test_multirun_sweeps_fragment_len_into_one_sweep_dir(tmp_path):
@@ -39,7 +39,7 @@ def test_multirun_sweeps_fragment_len_into_one_sweep_dir(tmp_path):
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
     assert len(jobs) == 3
     resolved = [yaml.safe_load((j / "config_resolved.yaml").read_text()) for j in jobs]
-    assert sorted(r["controller"]["fragment_len"] for r in resolved) == [1, 3, 10]
+    assert sorted(r["fragment_len"] for r in resolved) == [1, 3, 10]
     assert all((j / "metrics.csv").exists() for j in jobs)
     for j, r in zip(jobs, resolved):  # each job logs its own value, not the sweep's "1,3,10"
         [command] = (j / "commands.log").read_text().splitlines()

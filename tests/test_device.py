@@ -34,13 +34,14 @@ def _learner_losses(device: str, steps: int = 3) -> list[dict[str, float]]:
 
     from hvc.agents.network import AgentSpec, HighLevelAgent
     from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+    from hvc.schema import SVG0RetraceConfig
 
     torch.manual_seed(0)
     spec = AgentSpec(proprio_size=5, task_size=3, action_size=2, discrete=False, lstm_size=16, value_mlp=(16, 1),
                      vision=False, critic_takes_action=True)
     agent = HighLevelAgent(spec).to(device)
-    learner = RecurrentSVG0Retrace(agent, 0.99, -1.0, 1.0, learning_rate=1e-3, entropy_cost=1e-4,
-                                   target_update_period=2, value_samples=2)
+    learner = RecurrentSVG0Retrace(agent, 0.99, -1.0, 1.0, (0.1, 1.0), SVG0RetraceConfig(
+        learning_rate=1e-3, entropy_cost=1e-4, target_update_period=2, value_samples=2, kl_cost=0.0))
     rng = np.random.default_rng(0)
     T, B, H = 5, 4, max(spec.lstm_size, spec.policy_lstm)
     batch = {"proprio": rng.normal(size=(T + 1, B, 5)), "task": rng.normal(size=(T + 1, B, 3)),

@@ -51,12 +51,13 @@ def _high_level_critic_loss(log_mu_of):
 
     from hvc.agents.network import AgentSpec, HighLevelAgent
     from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+    from hvc.schema import SVG0RetraceConfig
 
     torch.manual_seed(0)
     agent = HighLevelAgent(AgentSpec(proprio_size=3, task_size=0, action_size=2, discrete=False, lstm_size=16,
                                      value_mlp=(16, 1), critic_takes_action=True))
-    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, learning_rate=0.0, sigma_clip=(0.3, 1.0),
-                                   target_update_period=10**6)
+    learner = RecurrentSVG0Retrace(agent, 0.9, -1.0, 1.0, (0.3, 1.0), SVG0RetraceConfig(
+        learning_rate=0.0, target_update_period=10**6, kl_cost=0.0))
     T, B = 5, 4
     g = torch.Generator().manual_seed(1)
     b = {"proprio": torch.randn(T + 1, B, 3, generator=g), "task": torch.zeros(T + 1, B, 0),

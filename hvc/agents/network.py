@@ -44,8 +44,8 @@ class ImageEncoder(nn.Module):
         for _ in channels:
             side = (side + 1) // 2
         self.out = nn.Linear(c_in * side * side, out_size)
-        # Channels-last conv weights: frames arrive as HWC, and oneDNN's NHWC kernels ran the
-        # learner's forward + backward about 25% faster on this CPU than mixed layouts.
+        # Channels-last conv weights: frames arrive as HWC, and oneDNN's NHWC kernels run the
+        # learner's forward + backward faster than mixed layouts (docs/results/design_measurements).
         # (load_state_dict and Adam's moments keep this layout.)
         self.to(memory_format=torch.channels_last)
 
@@ -113,7 +113,7 @@ class RunningNormalizer(nn.Module):
 def _run_lstm(lstm: nn.LSTM, x: torch.Tensor, h: torch.Tensor, c: torch.Tensor):
     """A one-layer nn.LSTM over x [T, B, I]. A single step (what acting does every control
     step) goes through torch.lstm_cell with the same weights: the same maths at a third of
-    nn.LSTM's per-call overhead (about 35 against 105 us at batch 2, size 128)."""
+    nn.LSTM's per-call overhead (docs/results/design_measurements)."""
     if x.shape[0] != 1:
         return lstm(x, (h, c))
     h1, c1 = torch.lstm_cell(x[0], (h[0], c[0]), lstm.weight_ih_l0, lstm.weight_hh_l0,

@@ -68,3 +68,17 @@ def refresh_on_schedule(learner: Learner, period: int, sync) -> None:
     learner.steps += 1
     if learner.steps % int(period) == 0:
         sync()
+
+
+class Pacer:
+    """Learner updates owed to the actors: `per_unroll` for every unroll added (fractions
+    accumulate), so the learner's share of the cores is a setting, not a race."""
+
+    def __init__(self, per_unroll: float, credit: float = 0.0):
+        self.per_unroll, self.credit = float(per_unroll), float(credit)
+
+    def owed(self, unrolls: int) -> int:
+        self.credit += self.per_unroll * unrolls
+        due = int(self.credit)
+        self.credit -= due
+        return due

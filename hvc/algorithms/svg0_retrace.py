@@ -27,6 +27,7 @@ from hvc.algorithms.learner import Acted, Learner, refresh_on_schedule, restore_
 from hvc.algorithms.optim import clipped_step
 from hvc.algorithms.retrace import retrace_targets, truncated_traces
 from hvc.errors import NonFiniteLoss
+from hvc.schema import GaussianControllerConfig, SVG0RetraceConfig, typed
 
 
 @dataclass
@@ -139,7 +140,6 @@ class SVG0Retrace(Learner):
         self.steps = int(state["steps"])
 
 
-SIGMA_CLIP = (0.1, 1.0)  # the Gaussian policies' sigma bounds when a controller config names none
 MEAN_RAW_LIMIT = 2.0  # |pre-tanh mean| beyond which the policy loss pulls it back (tanh(2) = 0.96)
 
 
@@ -154,28 +154,28 @@ class RecurrentSVG0Retrace(Learner):
     pi_target). Batches: time-major tensors plus the LSTM state at the unroll's start.
     """
 
-    def __init__(self, agent: HighLevelAgent, gamma: float, low: float, high: float, learning_rate: float = 1e-4,
-                 sigma_clip=SIGMA_CLIP, entropy_cost: float = 1e-5, retrace_lambda: float = 1.0,
-                 target_update_period: int = 100, value_samples: int = 4, kl_cost: float = 0.0):
-        self.agent = agent
+    schema = SVG0RetraceConfig
+
+    def __init__(self, agent: HighLevelAgent, gamma: float, low: float, high: float, sigma_clip: tuple[float, float],
+                 hp: SVG0RetraceConfig = SVG0RetraceConfig()):
+        self.agent, self.gamma, self.hp = agent, float(gamma), hp
         self.target = copy.deepcopy(agent).requires_grad_(False)
-        self.optimizer = torch.optim.Adam(agent.parameters(), lr=float(learning_rate))
-        self.gamma, self.learning_rate = float(gamma), float(learning_rate)
+        self.optimizer = torch.optim.Adam(agent.parameters(), lr=float(hp.learning_rate))
         self.low, self.high = float(low), float(high)
-        self.sigma_clip = tuple(sigma_clip)
-        self.entropy_cost, self.lam, self.kl_cost = float(entropy_cost), float(retrace_lambda), float(kl_cost)
-        self.period, self.value_samples = int(target_update_period), int(value_samples)
+        self.sigma_clip = tuple(float(v) for v in sigma_clip)
+        self.entropy_cost, self.lam, self.kl_cost = float(hp.entropy_cost), float(hp.retrace_lambda), float(hp.kl_cost)
+        self.period, self.value_samples = int(hp.target_update_period), int(hp.value_samples)
         self.steps = 0
 
     @classmethod
     def from_config(cls, agent: HighLevelAgent, cfg, space, controller=None, **extra):
         """From a job's config: gamma from task.agent, the action range from the controller's
-        `steering_range` or the action space, the rest from `algorithm` (defaults above)."""
-        algorithm, ctrl = cfg.algorithm, cfg.controller
+        `steering_range` or the action space, sigma bounds from the controller, the rest from
+        `algorithm` (hvc.schema)."""
+        ctrl = cfg.controller
         low, high = (float(v) for v in ctrl.get("steering_range") or (space.low, space.high))
-        keys = ("learning_rate", "entropy_cost", "retrace_lambda", "target_update_period", "value_samples", "kl_cost")
-        return cls(agent, float(cfg.task.agent.gamma), low, high, sigma_clip=tuple(ctrl.get("sigma_clip", SIGMA_CLIP)),
-                   **{k: algorithm[k] for k in keys if k in algorithm}, **extra)
+        return cls(agent, float(cfg.task.agent.gamma), low, high, typed(GaussianControllerConfig, ctrl).sigma_clip,
+                   hp=typed(cls.schema, cfg.algorithm), **extra)
 
     def distribution(self, agent: HighLevelAgent, policy_out: torch.Tensor) -> torch.distributions.Normal:
         mean, sigma = agent.gaussian(policy_out, self.low, self.high, self.sigma_clip)
@@ -255,6 +255,6 @@ class RecurrentSVG0Retrace(Learner):
 
     def load_state_dict(self, state: dict) -> None:
         self.agent.load_state_dict(state["agent"])
-        restore_optimizer(self.optimizer, state["optimizer"], self.learning_rate)
+        restore_optimizer(self.optimizer, state["optimizer"], self.hp.learning_rate)
         self.target.load_state_dict(state["target_agent"])
         self.steps = int(state.get("learner_steps", state.get("counters", {}).get("updates", 0)))

@@ -19,6 +19,7 @@ import torch
 from hvc.agents.network import HighLevelAgent
 from hvc.algorithms.learner import Acted, Learner, restore_optimizer
 from hvc.algorithms.optim import clipped_step
+from hvc.schema import VTraceConfig, typed
 
 
 @dataclass
@@ -70,18 +71,14 @@ class VTraceLearner(Learner):
     """V-trace actor-critic on replayed unrolls of the LSTM agent (a categorical policy and V(h)).
     Held steps, where the controller chose nothing, have rho = 1 and no policy-gradient term."""
 
-    def __init__(self, agent: HighLevelAgent, gamma: float, learning_rate: float = 1e-4, entropy_cost: float = 0.01,
-                 rho_clip: float = 1.0, c_clip: float = 1.0):
-        self.agent = agent
-        self.optimizer = torch.optim.Adam(agent.parameters(), lr=float(learning_rate))
-        self.gamma, self.learning_rate, self.entropy_cost = float(gamma), float(learning_rate), float(entropy_cost)
-        self.rho_clip, self.c_clip = float(rho_clip), float(c_clip)
+    def __init__(self, agent: HighLevelAgent, gamma: float, hp: VTraceConfig = VTraceConfig()):
+        self.agent, self.gamma, self.hp = agent, float(gamma), hp
+        self.optimizer = torch.optim.Adam(agent.parameters(), lr=float(hp.learning_rate))
         self.steps = 0
 
     @classmethod
     def from_config(cls, agent: HighLevelAgent, cfg, space=None, controller=None):
-        keys = ("learning_rate", "entropy_cost", "rho_clip", "c_clip")
-        return cls(agent, float(cfg.task.agent.gamma), **{k: cfg.algorithm[k] for k in keys if k in cfg.algorithm})
+        return cls(agent, float(cfg.task.agent.gamma), typed(VTraceConfig, cfg.algorithm))
 
     @torch.no_grad()
     def act(self, policy_out: torch.Tensor, h: torch.Tensor) -> Acted:
@@ -98,9 +95,9 @@ class VTraceLearner(Learner):
         log_pi = torch.log_softmax(logits[:-1], -1).gather(-1, b["action"][..., None]).squeeze(-1)
         log_rhos = (log_pi.detach() - b["log_mu"]) * b["new_action"]  # held steps chose nothing: rho = 1
         returns = vtrace_targets(log_rhos, b["discount"], b["reward"], values[:-1].detach(), values[-1].detach(),
-                                 self.gamma, self.rho_clip, self.c_clip)
+                                 self.gamma, float(self.hp.rho_clip), float(self.hp.c_clip))
         losses = vtrace_losses(logits[:-1], b["action"], values[:-1], returns, b["new_action"],
-                               torch.ones_like(b["reward"]), self.entropy_cost)
+                               torch.ones_like(b["reward"]), float(self.hp.entropy_cost))
         clipped_step(self.optimizer, losses["loss"], agent.parameters())
         self.steps += 1
         return {k: float(v.detach()) for k, v in losses.items()}
@@ -111,5 +108,5 @@ class VTraceLearner(Learner):
 
     def load_state_dict(self, state: dict) -> None:
         self.agent.load_state_dict(state["agent"])
-        restore_optimizer(self.optimizer, state["optimizer"], self.learning_rate)
+        restore_optimizer(self.optimizer, state["optimizer"], self.hp.learning_rate)
         self.steps = int(state.get("learner_steps", state.get("counters", {}).get("updates", 0)))

@@ -15,6 +15,7 @@ import torch
 
 from hvc.algorithms.learner import Acted
 from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+from hvc.schema import QueryControllerConfig, WolpertingerConfig, typed
 
 
 class WolpertingerLearner(RecurrentSVG0Retrace):
@@ -23,10 +24,11 @@ class WolpertingerLearner(RecurrentSVG0Retrace):
 
     uses_controller = True
     keeps_query = True
+    schema = WolpertingerConfig
 
-    def __init__(self, agent, gamma: float, low: float, high: float, selector, temperature: float = 1.0,
-                 seed: int = 0, **kwargs):
-        super().__init__(agent, gamma, low, high, **kwargs)
+    def __init__(self, agent, gamma: float, low: float, high: float, sigma_clip, selector, temperature: float,
+                 hp: WolpertingerConfig = WolpertingerConfig(), seed: int = 0):
+        super().__init__(agent, gamma, low, high, sigma_clip, hp)
         self.selector = selector
         self.keys = torch.from_numpy(np.asarray(selector.keys)).to(next(agent.parameters()).device)
         self.temperature = float(temperature)
@@ -34,9 +36,8 @@ class WolpertingerLearner(RecurrentSVG0Retrace):
 
     @classmethod
     def from_config(cls, agent, cfg, space, controller=None, **extra):
-        return super().from_config(agent, cfg, space, selector=controller,
-                                   temperature=float(cfg.controller.get("temperature", 1.0)), seed=int(cfg.seed),
-                                   **extra)
+        return super().from_config(agent, cfg, space, selector=controller, seed=int(cfg.seed),
+                                   temperature=typed(QueryControllerConfig, cfg.controller).temperature, **extra)
 
     @torch.no_grad()
     def act(self, policy_out: torch.Tensor, h: torch.Tensor) -> Acted:

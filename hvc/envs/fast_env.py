@@ -1,7 +1,7 @@
 """The fast step path: dm_control builds the models, raw mujoco steps them.
 
-Why: on this 2-core machine composer's `env.step` runs at about half the raw physics
-rate and its reset recompiles the whole MJCF (38-209 ms). Here a small pool of models
+Why: composer's `env.step` runs well below the raw physics rate and its reset recompiles
+the whole MJCF (docs/results/design_measurements). Here a small pool of models
 is compiled once (one per corridor or maze layout), resets write positions into the
 model, and a step is: action -> ctrl, the physics substeps, numpy observations.
 

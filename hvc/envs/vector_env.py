@@ -3,8 +3,7 @@ some stepped by the main process itself while the workers step theirs.
 
 Why the main process steps envs too: a step waits for the slowest env, and waking a
 worker and shipping its result through a pipe costs more than a rolling ball's physics
-step on these machines (a 2-core VM: two rolling-ball envs stepped in 600 us through two
-workers, whose own steps took 170 us each, and in 180 us in the main process). The main
+step (docs/results/design_measurements). The main
 process idles during that wait; stepping envs itself uses the wait, and leaves fewer
 processes to wake.
 

@@ -30,6 +30,7 @@ from torch import nn
 
 from hvc.agents.mlp import GaussianPolicy, NumpyPolicy, QNetwork
 from hvc.algorithms.replay import UnrollReplay, pad_unroll, svg0_fields
+from hvc.algorithms.learner import Pacer
 from hvc.algorithms.svg0_retrace import Batch, SVG0Retrace
 from hvc.envs.fast_env import FastEnv
 from hvc.errors import NonFiniteLoss
@@ -224,6 +225,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         save()  # behaviour cloning done: a kill from here on loses at most one interval
 
     actor = NumpyPolicy.from_torch(policy)
+    pacer = Pacer(cfg["updates_per_unroll"])
     unroll, batch_size = int(cfg["unroll"]), int(cfg["batch_size"])
     log_every, last_log = int(cfg["log_every"]), counters["env_steps"]
     last_save, start, start_steps = time.monotonic(), time.perf_counter(), counters["env_steps"]
@@ -255,7 +257,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         if done:
             obs = env.reset()
         if replay.size >= int(cfg["min_replay_unrolls"]):
-            for _ in range(int(cfg["updates_per_unroll"])):
+            for _ in range(pacer.owed(1)):
                 try:
                     info = learner.update(Batch(**replay.sample(batch_size, rng)),
                                           train_policy=learner.steps >= counters["critic_only_until"])

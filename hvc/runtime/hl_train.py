@@ -32,7 +32,7 @@ from hydra.utils import get_class
 from omegaconf import DictConfig
 
 from hvc.agents.network import AgentSpec, HighLevelAgent, RunningNormalizer
-from hvc.algorithms.learner import Learner
+from hvc.algorithms.learner import Learner, Pacer
 from hvc.algorithms.replay import Field, UnrollReplay
 from hvc.envs.vector_env import VectorEnv
 from hvc.errors import ControllerUnavailable, HvcUserError, NonFiniteLoss
@@ -85,20 +85,6 @@ def write_unrolls(replay: UnrollReplay, steps: list[Step], actor: Actor, start_s
         fields = {k: np.stack([get(s)[e] for s in steps] + [tail[k][e]]) for k, get in inputs.items()}
         fields.update({k: np.stack([get(s)[e] for s in steps]) for k, get in outcomes.items()})
         replay.add(state=start_state[e], **fields)
-
-
-class Pacer:
-    """Learner updates owed to the actors: `per_unroll` for every unroll added (fractions
-    accumulate), so the learner's share of the cores is a setting, not a race."""
-
-    def __init__(self, per_unroll: float, credit: float = 0.0):
-        self.per_unroll, self.credit = float(per_unroll), float(credit)
-
-    def owed(self, unrolls: int) -> int:
-        self.credit += self.per_unroll * unrolls
-        due = int(self.credit)
-        self.credit -= due
-        return due
 
 
 def make_envs(cfg: DictConfig, seed: int | None = None) -> VectorEnv:
