@@ -12,9 +12,9 @@ import warnings
 from pathlib import Path
 from typing import Iterable, Sequence
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
-from hvc.schema import register as register_schemas
+from hvc.schema import SCHEMAS, register as register_schemas
 
 register_schemas()  # before any composition: the group files name their schemas (hvc.schema)
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
@@ -37,9 +37,12 @@ def group_options(group: str) -> list[str]:
 
 def group_config(group: str, option: str) -> DictConfig:
     """One option file of a group, without its defaults list (for stages that need a
-    second task config, e.g. playback tracks a clip whatever `task` says)."""
+    second task config, e.g. playback tracks a clip whatever `task` says), typed by the schema
+    its defaults list names (hvc.schema), as composition would type it."""
     cfg = OmegaConf.load(CONF_DIR / group / f"{option}.yaml")
-    cfg.pop("defaults", None)
+    defaults = cfg.pop("defaults", None) or []
+    for name in (d for d in defaults if isinstance(d, str) and d in SCHEMAS.get(group, {})):
+        cfg = OmegaConf.merge(OmegaConf.structured(SCHEMAS[group][name]), cfg)
     return cfg
 
 
@@ -171,8 +174,28 @@ def resolve_parallelism(cfg: DictConfig) -> None:
         cfg.torch_threads = job_cores() if cfg.task.vision else 1
 
 
+def expand_clip_set(clips: DictConfig) -> None:
+    """A clip set's `include` (sets whose entries come first, recursively) expanded where the
+    config is composed, so that the code reading clip sets (hvc.mocap.clip_sets) reads one list
+    and no config file: `entries` becomes the whole set, `included` names every set it includes
+    (transitively, in order), and `include` is emptied. A second call changes nothing."""
+    included, entries = [], []
+    for name in clips.get("include") or []:
+        other = group_config("clips", name)
+        expand_clip_set(other)
+        included += [name, *other.get("included", [])]
+        entries += list(other.entries or [])
+    if included or "included" not in clips:
+        with open_dict(clips):
+            clips.included = included
+            clips.entries = entries + list(clips.get("entries") or [])
+            clips.include = []
+
+
 def validate(cfg: DictConfig) -> None:
-    """Raises ConfigError on the first bad value or combination."""
+    """Raises ConfigError on the first bad value or combination. Normalises on the way: counts
+    given as integral floats become ints, the clip set's includes are expanded."""
+    expand_clip_set(cfg.clips)
     for key in (*POSITIVE_INTS, "num_envs", "in_process_envs", "torch_threads"):
         _integral(cfg, key)
     for key in POSITIVE_INTS:

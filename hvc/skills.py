@@ -249,12 +249,8 @@ def _expert_sources(cfg: DictConfig, set_name: str) -> list[str]:
 
 
 def _included_sets(clips_cfg: Mapping[str, Any]) -> list[str]:
-    from hvc.config import group_config
-
-    out: list[str] = []
-    for name in clips_cfg.get("include") or []:
-        out += [name, *_included_sets(group_config("clips", name))]
-    return out
+    """Every set the job's set includes (hvc.config.expand_clip_set lists them)."""
+    return list(clips_cfg.get("included") or [])
 
 
 def _skill_key(entry: Mapping[str, Any]) -> tuple:

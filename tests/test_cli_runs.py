@@ -43,7 +43,7 @@ def test_multirun_sweeps_fragment_len_into_one_sweep_dir(tmp_path):
     assert all((j / "metrics.csv").exists() for j in jobs)
     for j, r in zip(jobs, resolved):  # each job logs its own value, not the sweep's "1,3,10"
         [command] = (j / "commands.log").read_text().splitlines()
-        assert command.endswith(f"hvc-run stage=rollout fragment_len={r['controller']['fragment_len']} total_steps=30")
+        assert command.endswith(f"hvc-run stage=rollout fragment_len={r['fragment_len']} total_steps=30")
 
 
 @pytest.mark.parametrize("task", ["gaps", "heterogeneous_forage"])

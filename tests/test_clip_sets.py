@@ -101,3 +101,19 @@ def test_fragment_keys_match_an_independent_rotation_and_ignore_the_world_headin
     yaw = np.array([np.cos(0.6), 0, 0, np.sin(0.6)])  # the whole clip turned 69 degrees about z
     turned = _turned_reference([tr.quat_mul(yaw, q) for q in quats], [tr.quat_rotate(yaw, v) for v in velocity])
     np.testing.assert_allclose(fragment_keys(turned, [0, 2, 5], 2), keys, atol=1e-9)
+
+
+def test_includes_are_expanded_where_the_config_is_composed_not_read_by_mocap():
+    """Composition lists the whole set once; clip_sets reads no config file and refuses a set
+    whose includes nobody expanded (it would silently drop the included clips)."""
+    from hvc.config import expand_clip_set, group_config
+
+    raw = group_config("clips", "go_to_target_x2")
+    with pytest.raises(ValueError, match="expand it first"):
+        entries_of(raw)
+    expand_clip_set(raw)
+    composed = compose(["clips=go_to_target_x2"]).clips
+    assert entries_of(raw) == entries_of(composed) == entries_of(compose(["clips=go_to_target"]).clips) * 2
+    assert list(composed.included) == ["go_to_target", "go_to_target"] and not composed.include
+    expand_clip_set(composed)  # twice: no change
+    assert len(entries_of(composed)) == 2 * len(entries_of(compose(["clips=go_to_target"]).clips))

@@ -46,13 +46,13 @@ class Fragment:
 
 
 def entries_of(clips_cfg: Mapping[str, Any]) -> list[ClipEntry]:
-    """The set's entries: those of the sets it includes (in order), then its own."""
-    from hvc.config import group_config
-
+    """The set's entries, its includes already expanded (hvc.config.expand_clip_set, which
+    composition applies)."""
+    if clips_cfg.get("include"):
+        raise ValueError(f"clip set {clips_cfg.get('name')!r} still lists include={list(clips_cfg['include'])}: "
+                         f"expand it first (hvc.config.expand_clip_set)")
     fields = set(ClipEntry.__dataclass_fields__)
     out = []
-    for included in clips_cfg.get("include") or []:
-        out += entries_of(group_config("clips", included))
     for raw in clips_cfg.get("entries") or []:
         unknown = set(raw) - fields
         if unknown:

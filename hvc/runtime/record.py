@@ -18,7 +18,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from hvc.config import CONF_DIR
+from hvc.config import CONF_DIR, expand_clip_set
 from hvc.errors import HvcUserError
 from hvc.runtime.acting import Actor
 from hvc.runtime.episodes import EpisodeRecorder
@@ -37,6 +37,7 @@ def trained_config(cfg: DictConfig) -> DictConfig:
         if not (source / name).is_file():
             raise HvcUserError(f"from_run={source} has no {name}: not a stage=train run dir")
     trained = _with_named_classes(OmegaConf.load(source / "config_resolved.yaml"))
+    expand_clip_set(trained.clips)  # a run saved before composition expanded them
     if trained.stage != "train":
         raise HvcUserError(f"from_run={source} is a stage={trained.stage} run; stage=record plays stage=train runs")
     if int(cfg.record_episodes) <= 0:
