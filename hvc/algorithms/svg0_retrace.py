@@ -115,7 +115,7 @@ class SVG0Retrace(Learner):
         kl = kl_fixed_sigma(mean, target_mean_all[:-1], self.policy.sigma)
         policy_loss = svg0_policy_loss(q_pi, weight, kl, self.kl_cost)
         if not (torch.isfinite(critic_loss) and torch.isfinite(policy_loss)):  # before either network moves
-            raise NonFiniteLoss(f"non-finite loss: critic {float(critic_loss)}, policy {float(policy_loss)}")
+            raise NonFiniteLoss(f"non-finite loss: critic {float(critic_loss.detach())}, policy {float(policy_loss.detach())}")
         clipped_step(self.critic_opt, critic_loss, self.critic.parameters())
         if train_policy:
             clipped_step(self.policy_opt, policy_loss, self.policy.parameters())
