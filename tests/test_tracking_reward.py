@@ -52,7 +52,7 @@ def test_end_effector_velocity_and_gyro_terms():
     body = _features(end_effectors=np.array([[0.3, 0.4, 0.0], [0, 0, 0], [0, 0, 0], [0, 0, 1.0]]),
                      velocity=np.array([1.0, -2.0, 0.0]), gyro=np.array([3.0, 4.0, 0.0]),
                      joints_velocity=np.full(56, 2.0))
-    terms = energies(body, _features())
+    terms = energies(body, _features(), PAPER["vel_scale"], PAPER["gyro_scale"])
     assert terms["ee"] == pytest.approx((0.5 + 1.0) / 4)
     assert terms["vel"] == pytest.approx(0.1 * 1.0)     # 0.1 * mean(|1|, |-2|, |0|)
     assert terms["gyro"] == pytest.approx(0.1 * 5.0)    # 0.1 * ||(3, 4, 0)||
@@ -65,3 +65,32 @@ def test_other_weightings_are_other_reward_files():
     only_joints = {**PAPER, "w_qvel": 0, "w_ori": 0, "w_ee": 0, "w_vel": 0, "w_gyro": 0}
     reward, _ = TrackingReward(only_joints)(_features(joints=np.full(56, 0.2), gyro=np.ones(3)), _features())
     assert reward == pytest.approx(np.exp(-10 * 0.2))
+
+
+def test_velocity_and_gyro_scales_come_from_the_reward_file():
+    body = _features(velocity=np.array([1.0, -2.0, 0.0]), gyro=np.array([3.0, 4.0, 0.0]))
+    _, terms = TrackingReward({**PAPER, "vel_scale": 0.5, "gyro_scale": 0.2})(body, _features())
+    assert (terms["vel"], terms["gyro"]) == (pytest.approx(0.5 * 1.0), pytest.approx(0.2 * 5.0))
+    with pytest.raises(KeyError):  # one declaration of the scales: the reward file's
+        TrackingReward({k: v for k, v in PAPER.items() if k != "gyro_scale"})
+
+
+def test_end_effectors_flattened_or_not_give_the_same_error():
+    ee = np.random.default_rng(1).normal(size=(4, 3))
+    stacked = energies(_features(end_effectors=ee), _features(), 0.1, 0.1)["ee"]
+    flat = energies(_features(end_effectors=ee.ravel()), _features(end_effectors=np.zeros(12)), 0.1, 0.1)["ee"]
+    assert flat == pytest.approx(stacked) and stacked == pytest.approx(np.linalg.norm(ee, axis=1).mean())
+
+
+def test_orientation_error_ignores_the_quaternions_scale():
+    q = np.array([np.cos(0.3), 0, np.sin(0.3), 0])
+    assert quat_log_norm(3.7 * q) == pytest.approx(quat_log_norm(q)) == pytest.approx(0.3)
+
+
+def test_weights_must_sum_to_a_positive_number():
+    zero = {**PAPER, **{f"w_{t}": 0.0 for t in ("qpos", "qvel", "ori", "ee", "vel", "gyro")}}
+    with pytest.raises(ValueError, match="reward weights must sum to a positive number"):
+        TrackingReward(zero)
+    unit = {**zero, "w_qpos": 0.5, "w_ori": 0.5}  # weights summing to one are fine
+    reward, _ = TrackingReward(unit)(_features(joints=np.full(56, 0.1)), _features())
+    assert reward == pytest.approx(np.exp(-10 * 0.5 * 0.1))

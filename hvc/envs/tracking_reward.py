@@ -32,13 +32,14 @@ class TrackingFeatures:
 
 def quat_log_norm(q: np.ndarray) -> float:
     """||log q|| for a unit quaternion: half the rotation angle, taking the shorter of
-    q and -q (they are the same rotation), so it lies in [0, pi/2]."""
-    q = q / np.linalg.norm(q)
+    q and -q (they are the same rotation), so it lies in [0, pi/2]. arctan2 of the vector
+    part's norm against |w| is scale-free, so a product drifted off unit norm needs no
+    renormalising."""
     return float(np.arctan2(np.linalg.norm(q[1:]), abs(q[0])))
 
 
-def energies(body: TrackingFeatures, ref: TrackingFeatures, vel_scale: float = 0.1,
-             gyro_scale: float = 0.1) -> dict[str, float]:
+def energies(body: TrackingFeatures, ref: TrackingFeatures, vel_scale: float, gyro_scale: float) -> dict[str, float]:
+    """The six error terms; end effectors may come as (n, 3) or flattened (3n,)."""
     return {
         "qpos": float(np.mean(np.abs(body.joints - ref.joints))),
         "qvel": float(np.mean(np.abs(body.joints_velocity - ref.joints_velocity))),
@@ -59,8 +60,8 @@ class TrackingReward:
         if self.w_total <= 0:
             raise ValueError(f"reward weights must sum to a positive number, got {self.weights}")
         self.beta = float(cfg["beta"])
-        self.vel_scale = float(cfg.get("vel_scale", 0.1))
-        self.gyro_scale = float(cfg.get("gyro_scale", 0.1))
+        self.vel_scale = float(cfg["vel_scale"])
+        self.gyro_scale = float(cfg["gyro_scale"])
 
     def __call__(self, body: TrackingFeatures, ref: TrackingFeatures) -> tuple[float, dict[str, float]]:
         terms = energies(body, ref, self.vel_scale, self.gyro_scale)
