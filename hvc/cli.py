@@ -13,6 +13,7 @@ from hydra import compose
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import ConfigCompositionException, HydraException, OverrideParseException
 from hydra.types import RunMode
+from hydra.utils import get_method
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, ValidationError
 
@@ -178,32 +179,22 @@ def _composed(cfg: DictConfig, given: list[str], options: list[str]) -> DictConf
     return cfg
 
 
+# stage -> the function that runs it, imported on use (a stage's imports are heavy: torch, mujoco)
+STAGE_RUNNERS = {
+    "rollout": "hvc.runtime.rollout.run_rollout",
+    "train": "hvc.runtime.hl_train.run_hl_training",
+    "record": "hvc.runtime.record.run_record",
+    "lowlevel": "hvc.runtime.lowlevel_stage.run_lowlevel",
+    "evaluate": "hvc.runtime.evaluate_stage.run_evaluate",
+    "info": "hvc.runtime.mocap_stages.run_info",
+    "convert": "hvc.runtime.mocap_stages.run_convert",
+    "playback": "hvc.runtime.mocap_stages.run_playback",
+    "openloop": "hvc.runtime.mocap_stages.run_openloop",
+}
+
+
 def _dispatch(cfg: DictConfig, run_dir: Path) -> dict:
-    if cfg.stage == "rollout":
-        from hvc.runtime.rollout import run_rollout
-
-        summary = run_rollout(cfg, run_dir)
-    elif cfg.stage == "train":
-        from hvc.runtime.hl_train import run_hl_training
-
-        summary = run_hl_training(cfg, run_dir)
-    elif cfg.stage == "record":
-        from hvc.runtime.record import run_record
-
-        summary = run_record(cfg, run_dir)
-    elif cfg.stage == "lowlevel":
-        from hvc.runtime.lowlevel_stage import run_lowlevel
-
-        summary = run_lowlevel(cfg, run_dir)
-    elif cfg.stage == "evaluate":
-        from hvc.runtime.evaluate_stage import run_evaluate
-
-        summary = run_evaluate(cfg, run_dir)
-    else:  # validate() admits only known stages
-        from hvc.runtime.mocap_stages import STAGES
-
-        summary = STAGES[cfg.stage](cfg, run_dir)
-    return summary
+    return get_method(STAGE_RUNNERS[cfg.stage])(cfg, run_dir)  # validate() admits only known stages
 
 
 def _with_resumed_options(argv: list[str]) -> list[str]:

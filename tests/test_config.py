@@ -194,3 +194,13 @@ def test_the_learners_take_their_hyperparameters_from_the_typed_config():
     discrete = HighLevelAgent(AgentSpec(3, 0, 4, True, 16, (16, 1)))
     vtrace = VTraceLearner.from_config(discrete, compose(["algorithm.rho_clip=2", "algorithm.learning_rate=3e-3"]))
     assert vtrace.hp.rho_clip == 2.0 and vtrace.optimizer.param_groups[0]["lr"] == 3e-3
+
+
+def test_every_stage_validate_admits_has_a_runner():
+    from hydra.utils import get_method
+
+    from hvc.cli import STAGE_RUNNERS
+    from hvc.config import STAGES
+
+    assert set(STAGE_RUNNERS) == set(STAGES)
+    assert all(callable(get_method(path)) for path in STAGE_RUNNERS.values())

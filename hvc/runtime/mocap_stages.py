@@ -93,4 +93,3 @@ def run_openloop(cfg: DictConfig, run_dir: Path) -> dict:
     return {"clips": results, "mean_completion": float(np.mean([r["openloop_completion"] for r in results.values()]))}
 
 
-STAGES = {"info": run_info, "convert": run_convert, "playback": run_playback, "openloop": run_openloop}
