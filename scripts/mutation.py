@@ -44,13 +44,15 @@ EQUIVALENT = RESULTS / "equivalent.toml"
 # name: (files to mutate, fast test files, mutant-name globs or None for all mutants of the files)
 GROUPS: dict[str, tuple[list[str], list[str], list[str] | None]] = {
     "reward": (["hvc/envs/tracking_reward.py"], ["tests/test_tracking_reward.py"], None),
-    "vtrace": (["hvc/algorithms/vtrace.py"], ["tests/test_vtrace.py", "tests/test_agent.py"], None),
+    "vtrace": (["hvc/algorithms/vtrace.py"], ["tests/test_vtrace.py", "tests/test_agent.py", "tests/test_learner_state.py",
+                                               "tests/test_config.py"], None),
     "retrace": (["hvc/algorithms/retrace.py"], ["tests/test_retrace.py", "tests/test_lowlevel.py"], None),
     # SVG(0) + Retrace at both levels: the low level's MLP learner and the high level's recurrent one
     "svg0": (["hvc/algorithms/svg0_retrace.py"],
-             ["tests/test_lowlevel.py", "tests/test_agent.py", "tests/test_retrace.py"], None),
+             ["tests/test_lowlevel.py", "tests/test_agent.py", "tests/test_retrace.py", "tests/test_learner_state.py",
+              "tests/test_config.py"], None),
     "wolpertinger": (["hvc/algorithms/wolpertinger.py", "hvc/controllers/query.py"],
-                     ["tests/test_agent.py", "tests/test_controllers.py"], None),
+                     ["tests/test_agent.py", "tests/test_controllers.py", "tests/test_learner_state.py"], None),
     "fragments_keys": (["hvc/controllers/fragments.py", "hvc/mocap/clip_sets.py"],
                        ["tests/test_controllers.py", "tests/test_clip_sets.py"], None),
     # checkpoint contents and their loading: the learners' and the replay's state, random streams

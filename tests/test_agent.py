@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from hvc.agents.network import AgentSpec, HighLevelAgent, ImageEncoder
@@ -371,3 +372,147 @@ def test_the_pacer_owes_the_configured_updates_per_unroll_fractions_included():
     assert Pacer(2).owed(3) == 6 and Pacer(1.5).owed(1) == 1
     resumed = Pacer(0.25, credit=0.75)  # a checkpoint's credit carries over
     assert resumed.owed(1) == 1 and resumed.credit == 0.0
+
+
+def _discrete_batch(T=4, B=2, vision=False, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    batch = {"proprio": torch.randn(T + 1, B, 3, generator=g), "task": torch.zeros(T + 1, B, 0),
+             "prev_reward": torch.zeros(T + 1, B), "prev_action": torch.zeros(T + 1, B, dtype=torch.long),
+             "first": torch.zeros(T + 1, B), "action": torch.randint(0, 4, (T, B), generator=g),
+             "log_mu": -torch.rand(T, B, generator=g),  # mu > pi for most steps: rho < 1 matters
+             "reward": torch.rand(T, B, generator=g), "discount": torch.ones(T, B), "new_action": torch.ones(T, B),
+             "state": torch.zeros(B, 4, 128)}
+    if vision:
+        batch["image"] = torch.randint(0, 255, (T + 1, B, 64, 64, 3), generator=g, dtype=torch.uint8)
+    return batch
+
+
+def test_vtrace_learner_feeds_the_published_targets_its_own_log_pi_values_and_settings(monkeypatch):
+    """What VTraceLearner hands to vtrace_targets / vtrace_losses, against an independent
+    replay of the agent: log rho = log softmax(logits)[a] - log mu, V over the unroll and
+    its bootstrap, the task's gamma and the configured rho_bar and c_bar."""
+    import hvc.algorithms.vtrace as vtrace
+    from hvc.schema import VTraceConfig
+
+    calls = {}
+    targets, losses = vtrace.vtrace_targets, vtrace.vtrace_losses
+    monkeypatch.setattr(vtrace, "vtrace_targets", lambda *a, **k: calls.setdefault("targets", (a, k)) and targets(*a, **k))
+    monkeypatch.setattr(vtrace, "vtrace_losses", lambda *a, **k: calls.setdefault("losses", (a, k)) and losses(*a, **k))
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(3, 0, 4, True, 16, (16, 1)))
+    batch = _discrete_batch()
+    batch["first"][2, 1] = 1.0  # an episode starts inside the unroll: the LSTM resets there
+    with torch.no_grad():
+        logits, h, _ = agent(batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"],
+                             agent.initial_state(2), done=batch["first"])
+        values = agent.values(h)
+    vtrace.VTraceLearner(agent, 0.9, VTraceConfig(rho_clip=0.7, c_clip=0.4, entropy_cost=0.02)).update(batch)
+    (log_rhos, discounts, rewards, v, bootstrap, gamma, rho_clip, c_clip), _ = calls["targets"]
+    log_pi = torch.log_softmax(logits[:-1], -1).gather(-1, batch["action"][..., None]).squeeze(-1)
+    torch.testing.assert_close(log_rhos, log_pi - batch["log_mu"])
+    torch.testing.assert_close(v, values[:-1])
+    torch.testing.assert_close(bootstrap, values[-1])
+    assert (gamma, rho_clip, c_clip) == (0.9, 0.7, 0.4)
+    (l_logits, l_actions, l_values, _, _, _, entropy_cost), _ = calls["losses"]
+    torch.testing.assert_close(l_values.detach(), values[:-1])
+    torch.testing.assert_close(l_logits.detach(), logits[:-1])
+    assert entropy_cost == 0.02 and torch.equal(l_actions, batch["action"])
+
+
+def test_vtrace_learner_reads_the_frames_of_a_vision_task():
+    """The unroll's images reach the agent's encoder: other frames, another loss."""
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(3, 0, 4, True, 16, (16, 1), vision=True))
+    batch = _discrete_batch(T=2, vision=True)
+    import copy
+
+    from hvc.algorithms.vtrace import VTraceLearner
+    from hvc.schema import VTraceConfig
+
+    first = VTraceLearner(copy.deepcopy(agent), 0.9, VTraceConfig(learning_rate=0.0)).update(batch)
+    other = dict(batch, image=255 - batch["image"])
+    second = VTraceLearner(copy.deepcopy(agent), 0.9, VTraceConfig(learning_rate=0.0)).update(other)
+    assert first["value_loss"] != pytest.approx(second["value_loss"], rel=1e-6)
+
+
+def test_vtrace_learner_acts_by_sampling_its_policy():
+    """act: a categorical sample, sent, kept and seen as is, with its exact log probability."""
+    import numpy as np
+
+    from hvc.algorithms.vtrace import VTraceLearner
+
+    agent = HighLevelAgent(AgentSpec(3, 0, 4, True, 16, (16, 1)))
+    logits = torch.log(torch.tensor([[0.7, 0.1, 0.1, 0.1]] * 4000))
+    torch.manual_seed(0)
+    acted = VTraceLearner(agent, 0.9).act(logits, torch.zeros(4000, 16))
+    assert np.array_equal(acted.send, acted.action) and np.array_equal(acted.seen, acted.action)
+    assert abs(np.mean(acted.action == 0) - 0.7) < 0.03 and set(np.unique(acted.action)) == {0, 1, 2, 3}
+    np.testing.assert_allclose(acted.log_mu, np.log([0.7, 0.1, 0.1, 0.1])[acted.action], rtol=1e-5)
+
+
+@pytest.mark.parametrize("learner_kind", ["svg0", "wolpertinger"])
+def test_continuous_learners_replay_frames_and_episode_starts(learner_kind):
+    """The unroll's images and episode starts reach the replayed agent (online and target):
+    other frames or an LSTM reset mid-unroll give another critic loss."""
+    import copy
+
+    import numpy as np
+
+    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+    from hvc.algorithms.wolpertinger import WolpertingerLearner
+    from hvc.schema import SVG0RetraceConfig, WolpertingerConfig
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(3, 0, 2, False, 16, (16, 1), vision=True, critic_takes_action=True))
+
+    def loss(batch):
+        torch.manual_seed(1)
+        if learner_kind == "svg0":
+            learner = RecurrentSVG0Retrace(copy.deepcopy(agent), 0.9, -1.0, 1.0, (0.1, 1.0),
+                                           SVG0RetraceConfig(learning_rate=0.0))
+        else:
+            keys = type("Keys", (), {"keys": np.zeros((3, 2), np.float32), "nearest": lambda self, q: np.arange(3)})()
+            learner = WolpertingerLearner(copy.deepcopy(agent), 0.9, -3.0, 3.0, (0.1, 1.0), keys, 1.0,
+                                          WolpertingerConfig(learning_rate=0.0))
+        return learner.update(batch)["critic_loss"]
+
+    batch = _continuous_batch(T=2, B=2)
+    g = torch.Generator().manual_seed(3)
+    batch["image"] = torch.randint(0, 255, (3, 2, 64, 64, 3), generator=g, dtype=torch.uint8)
+    batch["discount"] = torch.ones(2, 2)
+    base = loss(batch)
+    assert loss(dict(batch, image=255 - batch["image"])) != pytest.approx(base, rel=1e-6)
+    restarted = dict(batch, first=batch["first"].clone())
+    restarted["first"][1, 0] = 1.0
+    assert loss(restarted) != pytest.approx(base, rel=1e-6)
+
+
+def test_wolpertinger_acts_among_the_nearest_keys_by_their_q():
+    """act: the query's k nearest keys, one drawn with p ~ exp(Q / T); the env gets its index,
+    replay and the agent's next input its key, and the query keeps its own log density."""
+    import numpy as np
+
+    from hvc.algorithms.wolpertinger import WolpertingerLearner
+
+    class Selector:
+        keys = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [5.0, 5.0]], np.float32)
+
+        def nearest(self, query):
+            return np.array([0, 1, 2])  # key 3 is never a candidate
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(3, 0, 2, False, 16, (16, 1), critic_takes_action=True))
+    agent.value = _linear_critic(16, 2, 4.0)  # Q(h, key) = 4 * sum(key): keys 1 and 2 beat key 0
+    learner = WolpertingerLearner(agent, 0.9, -3.0, 3.0, (0.1, 1.0), Selector(), 0.5, seed=0)
+    n = 3000
+    policy_out = torch.zeros(n, 4)
+    acted = learner.act(policy_out, torch.zeros(n, 16))
+    assert set(np.unique(acted.send)) <= {0, 1, 2}
+    np.testing.assert_array_equal(acted.action, Selector.keys[acted.send])
+    np.testing.assert_array_equal(acted.seen, acted.action)
+    share = np.bincount(acted.send, minlength=3) / n  # p ~ exp(Q / T): e^0, e^8, e^8
+    assert share[0] < 0.01 and abs(share[1] - share[2]) < 0.05
+    dist = learner.distribution(agent, policy_out)
+    expected = dist.log_prob(torch.from_numpy(acted.query)).sum(-1).numpy()
+    np.testing.assert_allclose(acted.log_mu, expected, rtol=1e-5)
+    assert np.all(np.abs(acted.query) <= 3.0)

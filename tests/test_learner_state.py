@@ -146,3 +146,17 @@ def test_load_checkpoint_refuses_agents_from_before_input_normalisation(tmp_path
     with caplog.at_level("WARNING"):
         load_checkpoint(tmp_path / "floor.pt")
     assert "variance floor" in caplog.text
+
+
+@pytest.mark.parametrize("kind", ["vtrace", "svg0", "wolpertinger"])
+def test_a_checkpoint_from_before_learner_steps_takes_the_update_count(kind):
+    """Checkpoints written before the learners saved their own step count (the Fig. 6 runs):
+    the count of updates stands for it, so target refreshes keep their schedule."""
+    state = _learner(kind, seed=0).state_dict()
+    del state["learner_steps"]
+    restored = _learner(kind, seed=1)
+    restored.load_state_dict({**state, "counters": {"updates": 7, "env_steps": 70, "episodes": 1}})
+    assert restored.steps == 7
+    fresh = _learner(kind, seed=1)
+    fresh.load_state_dict(state)  # no counters either: from zero
+    assert fresh.steps == 0
