@@ -82,3 +82,13 @@ def test_high_level_retrace_truncates_traces_at_one():
     assert _high_level_critic_loss(lambda log_pi: log_pi - 30.0) == pytest.approx(on_policy, rel=1e-6)
     cut = _high_level_critic_loss(lambda log_pi: log_pi + 3.0)  # pi/mu = e^-3: traces ~0.05
     assert abs(cut - on_policy) > 1e-3 * on_policy  # the traces do reach the loss here
+
+
+def test_held_steps_get_the_full_trace_whatever_their_ratio():
+    """Where the high level chose nothing (held its action) the ratio is 1, so the trace is
+    lambda, for ratios above and below one; where it chose, lambda min(1, pi/mu)."""
+    log_pi = torch.tensor([[0.0, -2.0, 1.0, -0.5]])
+    log_mu = torch.tensor([[-1.0, 0.0, 0.0, 0.0]])
+    chose = torch.tensor([[0.0, 0.0, 1.0, 1.0]])
+    traces = truncated_traces(log_pi, log_mu, 0.8, chose)
+    torch.testing.assert_close(traces, torch.tensor([[0.8, 0.8, 0.8, 0.8 * float(np.exp(-0.5))]]))

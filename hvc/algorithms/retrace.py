@@ -23,7 +23,7 @@ def retrace_targets(rewards: torch.Tensor, discounts: torch.Tensor, q_taken: tor
     return targets
 
 
-def truncated_traces(log_pi: torch.Tensor, log_mu: torch.Tensor, lam: float = 1.0,
+def truncated_traces(log_pi: torch.Tensor, log_mu: torch.Tensor, lam: float,
                      chose: torch.Tensor | None = None) -> torch.Tensor:
     """c_t = lambda * min(1, pi(a_t|s_t) / mu(a_t|s_t)); where `chose` is 0 (a high-level step
     that held its action: the behaviour chose nothing) the ratio is 1."""
