@@ -204,3 +204,10 @@ def test_every_stage_validate_admits_has_a_runner():
 
     assert set(STAGE_RUNNERS) == set(STAGES)
     assert all(callable(get_method(path)) for path in STAGE_RUNNERS.values())
+
+
+def test_every_task_kind_validate_admits_has_a_composer_builder():
+    from hvc.config import RUNNABLE_TASK_KINDS
+    from hvc.envs.builders import TASK_BUILDERS
+
+    assert set(RUNNABLE_TASK_KINDS) == set(TASK_BUILDERS)

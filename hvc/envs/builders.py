@@ -22,7 +22,6 @@ from dm_control.locomotion.walkers import cmu_humanoid, jumping_ball
 from labmaze import fixed_maze
 
 BODY_KINDS = ("cmu_humanoid", "rolling_ball")
-TASK_KINDS = ("go_to_target", "corridor", "maze", "tracking")
 
 
 class FloorTask(composer.Task):
@@ -90,63 +89,77 @@ def _target_builders(task: Mapping[str, Any]):
     ]
 
 
+def _go_to_target(task: Mapping[str, Any], walker, timesteps: dict) -> composer.Task:
+    return go_to_target.GoToTarget(
+        walker=walker, arena=floors.Floor(size=tuple(task["arena_size"])),
+        moving_target=bool(task["moving_target"]),
+        steps_before_moving_target=int(task["steps_before_moving_target"]),
+        distance_tolerance=float(task["distance_tolerance"]), **timesteps)
+
+
+def _corridor(task: Mapping[str, Any], walker, timesteps: dict) -> composer.Task:
+    if task["arena"] == "walls":
+        arena = corridor_arenas.WallsCorridor(
+            wall_gap=float(task["wall_gap"]), wall_width=_uniform(task["wall_width"]),
+            wall_height=float(task["wall_height"]), corridor_width=float(task["corridor_width"]),
+            corridor_length=float(task["corridor_length"]), include_initial_padding=False)
+    elif task["arena"] == "gaps":
+        arena = corridor_arenas.GapsCorridor(
+            platform_length=_uniform(task["platform_length"]),
+            gap_length=_uniform(task["gap_length"]),
+            corridor_width=float(task["corridor_width"]),
+            corridor_length=float(task["corridor_length"]))
+    else:
+        raise ValueError(f"task.arena={task['arena']!r} is not one of walls, gaps")
+    return corridor_tasks.RunThroughCorridor(
+        walker=walker, arena=arena, walker_spawn_position=tuple(task["spawn_position"]),
+        target_velocity=float(task["target_velocity"]),
+        terminate_at_height=float(task["terminate_at_height"]), **timesteps)
+
+
+def _maze(task: Mapping[str, Any], walker, timesteps: dict) -> composer.Task:
+    builders = _target_builders(task)
+    common = dict(randomize_spawn_rotation=bool(task["randomize_spawn_rotation"]),
+                  aliveness_reward=float(task["aliveness_reward"]), **timesteps)
+    if task["maze"] == "random":
+        arena = mazes.RandomMazeWithTargets(
+            x_cells=int(task["x_cells"]), y_cells=int(task["y_cells"]),
+            xy_scale=float(task["xy_scale"]), max_rooms=int(task["max_rooms"]),
+            room_min_size=int(task["room_min_size"]), room_max_size=int(task["room_max_size"]),
+            spawns_per_room=int(task["spawns_per_room"]),
+            targets_per_room=int(task["targets_per_room"]), **_maze_textures())
+    elif task["maze"] == "fixed":
+        maze = fixed_maze.FixedMazeWithRandomGoals(
+            entity_layer=str(task["level"]), variations_layer=None, num_spawns=1,
+            num_objects=int(task["num_targets"]))
+        arena = mazes.MazeWithTargets(maze=maze, xy_scale=float(task["xy_scale"]),
+                                      z_height=float(task["z_height"]), **_maze_textures())
+    else:
+        raise ValueError(f"task.maze={task['maze']!r} is not one of random, fixed")
+    # Types keep a fixed colour here (no builder shuffling): the fast env assigns the
+    # rewards to colours at random each episode, which is the same distribution.
+    return random_goal_maze.ManyHeterogeneousGoalsMaze(
+        walker=walker, maze_arena=arena, target_builders=builders,
+        target_type_rewards=[float(r) for r in task["target_rewards"]],
+        target_type_proportions=[1] * len(builders), shuffle_target_builders=False, **common)
+
+
+def _tracking(task: Mapping[str, Any], walker, timesteps: dict) -> composer.Task:
+    return FloorTask(walker, floors.Floor(size=tuple(task["arena_size"])), **timesteps)
+
+
+# task.kind -> the builder of its dm_control composer task
+TASK_BUILDERS = {"go_to_target": _go_to_target, "corridor": _corridor, "maze": _maze, "tracking": _tracking}
+
+
 def build_task(task: Mapping[str, Any], walker) -> composer.Task:
     """The dm_control composer task for a task config, with the paper's timesteps."""
     kind = task["kind"]
+    if kind not in TASK_BUILDERS:
+        raise ValueError(f"task.kind={kind!r} has no environment; allowed: {', '.join(TASK_BUILDERS)}")
     timesteps = dict(physics_timestep=float(task["physics_timestep"]),
                      control_timestep=float(task["control_timestep"]))
-    if kind == "go_to_target":
-        return go_to_target.GoToTarget(
-            walker=walker, arena=floors.Floor(size=tuple(task["arena_size"])),
-            moving_target=bool(task["moving_target"]),
-            steps_before_moving_target=int(task["steps_before_moving_target"]),
-            distance_tolerance=float(task["distance_tolerance"]), **timesteps)
-    if kind == "corridor":
-        if task["arena"] == "walls":
-            arena = corridor_arenas.WallsCorridor(
-                wall_gap=float(task["wall_gap"]), wall_width=_uniform(task["wall_width"]),
-                wall_height=float(task["wall_height"]), corridor_width=float(task["corridor_width"]),
-                corridor_length=float(task["corridor_length"]), include_initial_padding=False)
-        elif task["arena"] == "gaps":
-            arena = corridor_arenas.GapsCorridor(
-                platform_length=_uniform(task["platform_length"]),
-                gap_length=_uniform(task["gap_length"]),
-                corridor_width=float(task["corridor_width"]),
-                corridor_length=float(task["corridor_length"]))
-        else:
-            raise ValueError(f"task.arena={task['arena']!r} is not one of walls, gaps")
-        return corridor_tasks.RunThroughCorridor(
-            walker=walker, arena=arena, walker_spawn_position=tuple(task["spawn_position"]),
-            target_velocity=float(task["target_velocity"]),
-            terminate_at_height=float(task["terminate_at_height"]), **timesteps)
-    if kind == "maze":
-        builders = _target_builders(task)
-        common = dict(randomize_spawn_rotation=bool(task["randomize_spawn_rotation"]),
-                      aliveness_reward=float(task["aliveness_reward"]), **timesteps)
-        if task["maze"] == "random":
-            arena = mazes.RandomMazeWithTargets(
-                x_cells=int(task["x_cells"]), y_cells=int(task["y_cells"]),
-                xy_scale=float(task["xy_scale"]), max_rooms=int(task["max_rooms"]),
-                room_min_size=int(task["room_min_size"]), room_max_size=int(task["room_max_size"]),
-                spawns_per_room=int(task["spawns_per_room"]),
-                targets_per_room=int(task["targets_per_room"]), **_maze_textures())
-        elif task["maze"] == "fixed":
-            maze = fixed_maze.FixedMazeWithRandomGoals(
-                entity_layer=str(task["level"]), variations_layer=None, num_spawns=1,
-                num_objects=int(task["num_targets"]))
-            arena = mazes.MazeWithTargets(maze=maze, xy_scale=float(task["xy_scale"]),
-                                          z_height=float(task["z_height"]), **_maze_textures())
-        else:
-            raise ValueError(f"task.maze={task['maze']!r} is not one of random, fixed")
-        # Types keep a fixed colour here (no builder shuffling): the fast env assigns the
-        # rewards to colours at random each episode, which is the same distribution.
-        return random_goal_maze.ManyHeterogeneousGoalsMaze(
-            walker=walker, maze_arena=arena, target_builders=builders,
-            target_type_rewards=[float(r) for r in task["target_rewards"]],
-            target_type_proportions=[1] * len(builders), shuffle_target_builders=False, **common)
-    if kind == "tracking":
-        return FloorTask(walker, floors.Floor(size=tuple(task["arena_size"])), **timesteps)
-    raise ValueError(f"task.kind={kind!r} has no environment; allowed: {', '.join(TASK_KINDS)}")
+    return TASK_BUILDERS[kind](task, walker, timesteps)
 
 
 def build_composer_env(task: Mapping[str, Any], body: Mapping[str, Any], seed: int | None = None):
