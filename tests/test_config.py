@@ -177,25 +177,6 @@ def test_sweep_files_compose_with_their_grids(tmp_path, sweep, expected):
     assert job.returncode == 0 and "stage: train" in job.stdout
 
 
-def test_the_learners_take_their_hyperparameters_from_the_typed_config():
-    """One declaration (hvc/schema.py) feeds config and learner: an override reaches the learner,
-    and what the YAML leaves out is the schema's default, not a second default in code."""
-    from hvc.agents.network import AgentSpec, HighLevelAgent
-    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
-    from hvc.algorithms.vtrace import VTraceLearner
-    from hvc.envs.spaces import ActionSpace
-    from hvc.schema import SVG0RetraceConfig
-
-    continuous = HighLevelAgent(AgentSpec(3, 0, 1, False, 16, (16, 1), critic_takes_action=True))
-    cfg = compose(["controller=steerable", "algorithm.entropy_cost=0.5", "controller.sigma_clip=[0.2,0.7]"])
-    learner = RecurrentSVG0Retrace.from_config(continuous, cfg, ActionSpace(discrete=False, size=1, low=-1, high=1))
-    assert (learner.entropy_cost, learner.sigma_clip, (learner.low, learner.high)) == (0.5, (0.2, 0.7), (-1.5, 1.5))
-    assert learner.period == SVG0RetraceConfig.target_update_period and learner.gamma == cfg.task.agent.gamma
-    discrete = HighLevelAgent(AgentSpec(3, 0, 4, True, 16, (16, 1)))
-    vtrace = VTraceLearner.from_config(discrete, compose(["algorithm.rho_clip=2", "algorithm.learning_rate=3e-3"]))
-    assert vtrace.hp.rho_clip == 2.0 and vtrace.optimizer.param_groups[0]["lr"] == 3e-3
-
-
 def test_every_stage_validate_admits_has_a_runner():
     from hydra.utils import get_method
 
