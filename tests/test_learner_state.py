@@ -11,6 +11,7 @@ from hvc.agents.network import AgentSpec, HighLevelAgent
 from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
 from hvc.algorithms.vtrace import VTraceLearner
 from hvc.algorithms.wolpertinger import WolpertingerLearner
+from hvc.config import compose
 from hvc.io.checkpoint import random_states, restore_random_states
 from hvc.schema import SVG0RetraceConfig, VTraceConfig, WolpertingerConfig
 
