@@ -67,23 +67,22 @@ def unroll_fields(spec: AgentSpec, n: int, query: bool = False) -> dict[str, Fie
     return fields
 
 
+INPUTS = ("proprio", "task", "image", "prev_reward", "prev_action", "first")  # n + 1 per unroll
+OUTCOMES = ("action", "log_mu", "reward", "discount", "new_action", "query")  # n per unroll
+
+
 def write_unrolls(replay: UnrollReplay, steps: list[Step], actor: Actor, start_state: np.ndarray) -> None:
     """One unroll per env from the actor's last `len(steps)` steps, with the inputs after the
-    last step (for bootstrapping)."""
-    inputs = {"proprio": lambda s: s.obs["proprio"], "task": lambda s: s.obs["task"],
-              "prev_reward": lambda s: s.prev_reward, "prev_action": lambda s: s.prev_action,
-              "first": lambda s: s.first}
-    tail = {"proprio": actor.obs["proprio"], "task": actor.obs["task"], "prev_reward": actor.prev_reward,
-            "prev_action": actor.prev_action, "first": actor.first}
-    if "image" in replay.fields:
-        inputs["image"], tail["image"] = (lambda s: s.obs["image"]), actor.obs["image"]
-    outcomes = {"action": lambda s: s.action, "log_mu": lambda s: s.log_mu, "reward": lambda s: s.reward,
-                "discount": lambda s: s.discount, "new_action": lambda s: s.new_action}
-    if "query" in replay.fields:
-        outcomes["query"] = lambda s: s.query
+    last step (for bootstrapping). Step's fields are named as replay's; the observation's keys too."""
+    def value(step, name):
+        return step.obs[name] if name in step.obs else getattr(step, name)
+
+    tail = {**actor.obs, "prev_reward": actor.prev_reward, "prev_action": actor.prev_action, "first": actor.first}
+    inputs = [k for k in INPUTS if k in replay.fields]
+    outcomes = [k for k in OUTCOMES if k in replay.fields]
     for e in range(len(start_state)):
-        fields = {k: np.stack([get(s)[e] for s in steps] + [tail[k][e]]) for k, get in inputs.items()}
-        fields.update({k: np.stack([get(s)[e] for s in steps]) for k, get in outcomes.items()})
+        fields = {k: np.stack([value(s, k)[e] for s in steps] + [tail[k][e]]) for k in inputs}
+        fields.update({k: np.stack([value(s, k)[e] for s in steps]) for k in outcomes})
         replay.add(state=start_state[e], **fields)
 
 

@@ -18,7 +18,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from hvc.config import CONF_DIR, expand_clip_set
+from hvc.config import expand_clip_set, group_config
 from hvc.errors import HvcUserError
 from hvc.runtime.acting import Actor
 from hvc.runtime.episodes import EpisodeRecorder
@@ -51,7 +51,7 @@ def _with_named_classes(trained: DictConfig) -> DictConfig:
     (`_target_`, the controller's `skills` kind) gets them from today's config of the same name."""
     for group in ("controller", "algorithm"):
         node = trained[group]
-        current = OmegaConf.load(CONF_DIR / group / f"{node.name}.yaml")
+        current = group_config(group, str(node.name))
         for key in ("_target_", "skills"):
             if key in current and key not in node:
                 node[key] = current[key]
