@@ -9,8 +9,10 @@ and for fragments on go_to_target and gaps the actor's env steps/s (env + expert
 and the V-trace learner's transitions/s at the task's Table A.1 sizes. Last, two envs of the
 rolling ball (end_to_end) and of the humanoid (fragments) stepped by VectorEnv with 0, 1 or 2
 of them in the main process, against twice one env's rate stepped directly (the ceiling of
-two cores).
-Ratios, not absolute times, are the numbers to compare across machines.
+two cores; the humanoid's goal is 0.85 with one of them in the main process). Then a short
+real training run (fragments on go_to_target) against its actor-only and learner-only rates
+measured in the same call: the two fractions should add up to 0.9 or more, or a core waits.
+`--only` picks lines. Ratios, not absolute times, are the numbers to compare across machines.
 """
 from __future__ import annotations
 
@@ -285,19 +287,97 @@ def ray_actors_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
     return rate["local"], rate["ray"]
 
 
+def training_balance(overrides: list[str], seconds: float, total_steps: int) -> dict[str, float]:
+    """Does a training run keep the cores busy? A short real `stage=train` run (the same
+    `run_hl_training` as `hvc-run`) against the rates of its two halves measured alone in the
+    same call: the actor-only rate (the run's envs and agent acting, unrolls written to replay,
+    no updates) and the learner-only rate (updates at the run's torch_threads on what that
+    acting stored). Acting and learning take turns in one process, so the two fractions of
+    their alone-rates add up to at most about 1; time lost to neither (waiting, logging,
+    checkpoints) shows up as a sum below 1. The training rates count from its first metrics
+    row to its last, so start-up (workers, experts) is left out. Alone-rates: two blocks each,
+    before and after the run, so that the machine's drift hits both sides alike."""
+    import tempfile
+    from pathlib import Path
+
+    import pandas as pd
+    import torch
+
+    from hvc.algorithms.replay import UnrollReplay
+    from hvc.runtime.acting import Actor
+    from hvc.runtime.hl_train import build_agent, make_envs, run_hl_training, unroll_fields, write_unrolls
+
+    cfg = compose(overrides + [f"total_steps={total_steps}", "hl.random_episodes=0", "progress_seconds=1e9"])
+    n, batch = int(cfg.task.agent.unroll), int(cfg.algorithm.batch_size)
+    rng = np.random.default_rng(0)
+    torch.manual_seed(0)
+    envs = make_envs(cfg)
+    spec, agent, learner = build_agent(cfg, envs)
+    replay = UnrollReplay(4096, unroll_fields(spec, n, query=learner.keeps_query))
+    actor = Actor(agent, learner, envs)
+    act_time = act_steps = learn_time = learn_transitions = 0.0
+
+    def act_alone():
+        nonlocal act_time, act_steps
+        torch.set_num_threads(1)
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < seconds / 2 or replay.size < batch:
+            start_state = agent.pack_state(actor.lstm)
+            write_unrolls(replay, [actor.step() for _ in range(n)], actor, start_state)
+            act_steps += n * envs.num_envs
+        act_time += time.perf_counter() - t0
+
+    def learn_alone():
+        nonlocal learn_time, learn_transitions
+        torch.set_num_threads(int(cfg.torch_threads))
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < seconds / 2:
+            learner.update(replay.sample(batch, rng))
+            learn_transitions += batch * n
+        learn_time += time.perf_counter() - t0
+        torch.set_num_threads(1)
+
+    try:
+        act_alone()
+        learn_alone()
+        with tempfile.TemporaryDirectory() as run_dir:
+            run_hl_training(cfg, Path(run_dir))
+            rows = pd.read_csv(Path(run_dir) / "metrics.csv").drop_duplicates("env_steps")
+        act_alone()
+        learn_alone()
+    finally:
+        envs.close()
+        torch.set_num_threads(1)
+    first, last = rows.iloc[0], rows.iloc[-1]
+    wall = last.wall_time - first.wall_time
+    out = {"train_sps": (last.env_steps - first.env_steps) / wall,
+           "train_tps": (last.learner_steps - first.learner_steps) / wall,
+           "actor_sps": act_steps / act_time, "learner_tps": learn_transitions / learn_time}
+    out["sum"] = out["train_sps"] / out["actor_sps"] + out["train_tps"] / out["learner_tps"]
+    return out
+
+
+SECTIONS = ("tasks", "hl", "expert", "render", "vector_env", "train", "ray")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
+    parser.add_argument("--only", nargs="+", default=list(SECTIONS), choices=SECTIONS,
+                        help="measure these lines only (default: all)")
     parser.add_argument("--seconds", type=float, default=3.0, help="per measurement")
     parser.add_argument("--no-composer", action="store_true", help="skip dm_control composer (slow resets)")
     parser.add_argument("--no-render", action="store_true")
+    parser.add_argument("--train-steps", type=int, default=6000, help="env steps of the short training run")
     parser.add_argument("--no-ray", action="store_true", help="skip the Ray actors line (needs hvc[ray])")
     args = parser.parse_args(argv)
+    only = set(args.only) - ({"render"} if args.no_render else set()) - ({"ray"} if args.no_ray else set())
     rng = np.random.default_rng(0)
     lines = []
-    print(f"{'task':<22}{'ceiling sps':>12}{'hvc sps':>10}{'composer sps':>14}{'hvc/ceil':>10}"
-          f"{'reset ms':>10}{'composer reset ms':>19}")
-    for name in args.tasks:
+    if "tasks" in only:
+        print(f"{'task':<22}{'ceiling sps':>12}{'hvc sps':>10}{'composer sps':>14}{'hvc/ceil':>10}"
+              f"{'reset ms':>10}{'composer reset ms':>19}")
+    for name in args.tasks if "tasks" in only else ():
         cfg = compose([f"task={name}"])
         task, body, render = (_plain(cfg, k) for k in ("task", "body", "render"))
         env = FastEnv.build(task, body, render, seed=0, render=False)
@@ -310,21 +390,28 @@ def main(argv=None) -> None:
         lines.append(f"bench task={name} ceiling_sps={ceiling:.0f} hvc_sps={sps:.0f} composer_sps={comp:.0f} "
                      f"hvc/ceiling={sps / ceiling:.2f} composer/ceiling={comp / ceiling:.2f} "
                      f"reset_ms={reset_ms:.2f} composer_reset_ms={comp_reset:.1f}")
-    for name in ("go_to_target", "gaps"):
+    for name in ("go_to_target", "gaps") if "hl" in only else ():
         actor, learner = hl_throughput(name, args.seconds)
         lines.append(f"bench hl task={name} controller=fragments actor_sps={actor:.0f} learner_tps={learner[1]:.0f}"
                      + "".join(f" learner_tps_{k}_threads={v:.0f}" for k, v in learner.items() if k > 1))
-    us = expert_inference_us(256, args.seconds)
-    lines.append(f"bench expert_inference hidden=256 us_per_step={us:.1f} goal_us=30 ratio={us / 30:.2f}")
-    if not args.no_render:
-        for settings in ("default", "fast"):
-            lines.append(f"bench render task=gaps settings={settings} size=64x64 "
-                         f"fps={render_fps(settings, args.seconds):.0f}")
-    for overrides in (["body=rolling_ball", "controller=end_to_end"], ["controller=fragments"]):
+    if "expert" in only:
+        us = expert_inference_us(256, args.seconds)
+        lines.append(f"bench expert_inference hidden=256 us_per_step={us:.1f} goal_us=30 ratio={us / 30:.2f}")
+    for settings in ("default", "fast") if "render" in only else ():
+        lines.append(f"bench render task=gaps settings={settings} size=64x64 "
+                     f"fps={render_fps(settings, args.seconds):.0f}")
+    for overrides in (["body=rolling_ball", "controller=end_to_end"], ["controller=fragments"]) \
+            if "vector_env" in only else ():
         ceiling, rates = vector_env_sps(overrides + ["task=go_to_target"], args.seconds)
         lines.append(f"bench vector_env {' '.join(overrides)} num_envs=2 ceiling_sps={ceiling:.0f} " + " ".join(
-            f"in_process={k}:sps={v:.0f},ratio={v / ceiling:.2f}" for k, v in rates.items()))
-    if not args.no_ray:
+            f"in_process={k}:sps={v:.0f},ratio={v / ceiling:.2f}" for k, v in rates.items()) + " goal=0.85")
+    if "train" in only:
+        overrides = ["controller=fragments", "task=go_to_target"]
+        b = training_balance(overrides, args.seconds, args.train_steps)
+        lines.append(f"bench train {' '.join(overrides)} train_sps={b['train_sps']:.0f} actor_sps={b['actor_sps']:.0f} "
+                     f"train_tps={b['train_tps']:.0f} learner_tps={b['learner_tps']:.0f} "
+                     f"sum={b['sum']:.2f} goal=0.9")
+    if "ray" in only:
         local, remote = ray_actors_sps(["controller=fragments", "task=go_to_target"], args.seconds)
         lines.append(f"bench ray_actors controller=fragments num_envs=2 workers_sps={local:.0f} ray_sps={remote:.0f} "
                      f"ratio={remote / local:.2f} goal=0.8")

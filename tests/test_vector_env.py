@@ -74,7 +74,7 @@ def test_worker_failure_names_the_worker_and_task():
     task, body, render = plain_cfg("task=gaps", "task.layout_pool=1")
     env = VectorEnv(task, body, render, num_envs=2, seed=0)
     env.reset()
-    env._conns[1].send(("crash", "simulated failure"))
+    env._send(1, "crash", "simulated failure")
     with pytest.raises(WorkerError, match=r"(?s)worker 1 \(task=gaps\).*simulated failure"):
         env._receive(1)
     assert env.closed

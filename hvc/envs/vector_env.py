@@ -7,6 +7,10 @@ step (docs/results/design_measurements). The main
 process idles during that wait; stepping envs itself uses the wait, and leaves fewer
 processes to wake.
 
+After a start-up handshake on a pipe, commands and results go through each worker's
+shared-memory mailbox (hvc.envs.mailbox), whose waits spin before they sleep: a pipe's
+wake-ups cost a humanoid step a third of its time on a second core.
+
 Spawn, not fork: each worker imports mujoco and creates its GL context itself, which
 is what EGL and OSMesa need. Workers ignore SIGINT so Ctrl-C reaches only the parent,
 which then shuts them down; a worker that raises or dies surfaces as a WorkerError
@@ -21,9 +25,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from hvc.envs.mailbox import Mailbox, action_layout, observation_layout
 from hvc.envs.spaces import ActionSpace
 
-_POLL_SECONDS = 1.0
+_POLL_SECONDS = 0.1  # how often a wait checks that the other side is still alive
 
 
 class WorkerError(RuntimeError):
@@ -51,47 +56,66 @@ class _EnvHost:
 
     def step(self, action):
         """(obs, reward, discount, done, info); a finished episode is reset at once and its
-        return and length reported in info."""
+        return and length reported in info. Scalars are Python's own, wherever the env runs
+        (they cross to the parent pickled)."""
         info = {}
         if self.driven:
             obs, reward, discount, done, step_info = self.driven.step(action if self.driven.needs_action else None)
-            info["new_action"] = step_info["new_action"]
-            info["hl_action"] = step_info["hl_action"]
+            info["new_action"] = bool(step_info["new_action"])
+            info["hl_action"] = _plain_scalar(step_info["hl_action"])
         else:
             obs, reward, discount, done = self.env.step(action)
         if done:
-            info.update(episode_return=self.env.episode_return, episode_length=self.env.episode_steps)
+            info.update(episode_return=float(self.env.episode_return), episode_length=int(self.env.episode_steps))
             obs = self.reset()
-        return obs, reward, discount, done, info
+        return obs, float(reward), float(discount), bool(done), info
 
     def close(self) -> None:
         self.env.close()
 
 
-def _worker(conn, index: int, task, body, render_settings, seed: int, drive) -> None:
+def _plain_scalar(value):
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _mailbox(spec: dict, semaphores, name: str | None = None) -> Mailbox:
+    return Mailbox(action_layout(spec["action_space"]), observation_layout(spec["observation_sizes"]),
+                   semaphores, name)
+
+
+def _worker(conn, index: int, task, body, render_settings, seed: int, drive, semaphores) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    mailbox = None
     try:
         host = _EnvHost(task, body, render_settings, seed, drive)
         conn.send(("ready", host.spec))
+        _, name = conn.recv()
+        mailbox = _mailbox(host.spec, semaphores, name)
+        parent_alive = lambda: not conn.poll(0)  # noqa: E731 - the parent sends nothing more: EOF
         while True:
-            command, payload = conn.recv()
+            command, payload, arrays = mailbox.wait_command(parent_alive, _POLL_SECONDS)
             if command == "reset":
-                conn.send(("ok", host.reset()))
+                mailbox.reply("ok", arrays=host.reset())
             elif command == "step":
-                conn.send(("ok", host.step(payload)))
+                obs, *rest = host.step(arrays["action"])
+                mailbox.reply("ok", tuple(rest), arrays=obs)
             elif command == "crash":  # for tests: a worker failing mid-run
                 raise RuntimeError(str(payload))
             elif command == "close":
                 host.close()
-                conn.send(("ok", None))
+                mailbox.reply("ok")
                 return
     except (EOFError, KeyboardInterrupt, BrokenPipeError):
         return
     except Exception:  # noqa: BLE001 - forwarded to the parent with its traceback
         try:
-            conn.send(("error", traceback.format_exc()))
+            error = traceback.format_exc()[-100_000:]
+            mailbox.reply("error", error) if mailbox else conn.send(("error", error))
         except (BrokenPipeError, OSError):
             pass
+    finally:
+        if mailbox is not None:
+            mailbox.close()
 
 
 class BatchedEnvs:
@@ -136,13 +160,14 @@ class VectorEnv(BatchedEnvs):
         self.num_envs = num_envs
         self.closed = False
         ctx = mp.get_context("spawn")
-        self._conns, self._procs, self._hosts = [], [], []
+        self._conns, self._procs, self._hosts, self._mailboxes = [], [], [], []
         workers = num_envs - in_process
         plain = lambda d: None if d is None else dict(d)  # noqa: E731
+        semaphores = [(ctx.Semaphore(0), ctx.Semaphore(0)) for _ in range(workers)]
         for i in range(workers):
             parent, child = ctx.Pipe()
             proc = ctx.Process(target=_worker, args=(child, i, dict(task), dict(body), plain(render_settings),
-                                                      seed + i, drive),
+                                                      seed + i, drive, semaphores[i]),
                                daemon=True, name=f"hvc-env-{i}")
             proc.start()
             child.close()
@@ -155,6 +180,9 @@ class VectorEnv(BatchedEnvs):
             self.close()
             raise
         specs = [self._receive(i) for i in range(workers)] + [host.spec for host in self._hosts]
+        for i in range(workers):
+            self._mailboxes.append(_mailbox(specs[i], semaphores[i]))
+            self._conns[i].send(("mailbox", self._mailboxes[i].name))
         self.action_size = specs[0]["action_size"]
         self.action_low, self.action_high = specs[0]["action_low"], specs[0]["action_high"]
         self.observation_sizes = specs[0]["observation_sizes"]
@@ -163,22 +191,22 @@ class VectorEnv(BatchedEnvs):
         self.why_no_controller = specs[0]["why_not"]
         self.skills = getattr(drive, "skills", None)
 
-    def _send(self, index: int, message) -> None:
-        try:
-            self._conns[index].send(message)
-        except OSError:  # broken pipe / reset: the worker is gone
-            self._procs[index].join(timeout=1)
-            code = self._procs[index].exitcode
-            self.close()
-            raise WorkerError(f"env worker {index} (task={self.task_name}) died with exit code {code}") from None
+    def _send(self, index: int, command: str, payload=None, arrays=None) -> None:
+        self._mailboxes[index].post(command, payload, arrays)
 
     def _receive(self, index: int):
+        """The worker's reply: through its mailbox, or the pipe during the start-up handshake."""
         conn, proc = self._conns[index], self._procs[index]
         try:
-            while not conn.poll(_POLL_SECONDS):
-                if not proc.is_alive():
-                    raise EOFError
-            status, payload = conn.recv()
+            if index < len(self._mailboxes):
+                status, payload, obs = self._mailboxes[index].wait_reply(proc.is_alive, _POLL_SECONDS)
+                if obs is not None:  # a reset's observation, or a step's with the rest as payload
+                    payload = obs if payload is None else (obs, *payload)
+            else:
+                while not conn.poll(_POLL_SECONDS):
+                    if not proc.is_alive():
+                        raise EOFError
+                status, payload = conn.recv()
         except (EOFError, OSError):
             proc.join(timeout=1)
             self.close()
@@ -206,14 +234,14 @@ class VectorEnv(BatchedEnvs):
 
     def reset(self) -> dict[str, np.ndarray]:
         for i in range(len(self._conns)):
-            self._send(i, ("reset", None))
+            self._send(i, "reset")
         here = self._in_process("reset")
         return self._stack([self._receive(i) for i in range(len(self._conns))] + here)
 
     def step(self, actions: np.ndarray):
         workers = len(self._conns)
         for i in range(workers):
-            self._send(i, ("step", np.asarray(actions[i])))
+            self._send(i, "step", arrays={"action": np.asarray(actions[i])})
         here = self._in_process("step", actions)
         return self._batch([self._receive(i) for i in range(workers)] + here)
 
@@ -221,19 +249,18 @@ class VectorEnv(BatchedEnvs):
         if getattr(self, "closed", False):
             return
         self.closed = True
-        for conn, proc in zip(self._conns, self._procs):
+        for mailbox, proc in zip(self._mailboxes, self._procs):
             if proc.is_alive():
-                try:
-                    conn.send(("close", None))
-                except (BrokenPipeError, OSError):
-                    pass
+                mailbox.post("close")
+        for conn in self._conns:  # EOF ends a worker still in its start-up handshake
+            conn.close()
         for proc in self._procs:
             proc.join(timeout=5)
             if proc.is_alive():
                 proc.terminate()
                 proc.join(timeout=5)
-        for conn in self._conns:
-            conn.close()
+        for mailbox in self._mailboxes:
+            mailbox.close()
         for host in self._hosts:
             host.close()
 
