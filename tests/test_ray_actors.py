@@ -52,6 +52,23 @@ def test_ray_actors_step_the_same_envs_as_worker_processes(local_ray, overrides)
         b.close()
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_an_actor_failing_mid_run_is_an_error_naming_the_task(local_ray, compiled):
+    """Through the compiled graph and through plain actor calls alike: a WorkerError, no hang,
+    and the envs closed."""
+    from hvc.envs.ray_actors import RayVectorEnv
+    from hvc.envs.vector_env import WorkerError
+    from hvc.runtime.env_config import env_dicts
+
+    task, body, render = env_dicts(compose(["body=rolling_ball", "controller=end_to_end"]))
+    envs = RayVectorEnv(task, body, render, 2, seed=0, compiled=compiled)
+    envs.reset()
+    envs.step(envs.random_actions(np.random.default_rng(0)))
+    with pytest.raises(WorkerError, match=r"(?s)task=go_to_target.*simulated failure"):
+        envs._call([("step", np.zeros(envs.action_size)), ("crash", "simulated failure")])
+    assert envs.closed
+
+
 def test_a_training_run_with_ray_actors_writes_what_a_local_one_does(tmp_path):
     ball = ["stage=train", "body=rolling_ball", "controller=end_to_end", "num_envs=2", "total_steps=200",
             "hl.random_episodes=1", "hl.min_replay_unrolls=2", "algorithm.batch_size=2", "task.time_limit=1.0"]

@@ -49,12 +49,19 @@ class _Host(_EnvHost):
     def get_spec(self) -> dict:
         return self.spec
 
+    def call(self, message: tuple):
+        """("reset", None) or ("step", action): the one method a compiled graph runs."""
+        command, payload = message
+        if command == "crash":  # for tests: an actor failing mid-run
+            raise RuntimeError(str(payload))
+        return self.reset() if command == "reset" else self.step(payload)
+
 
 class RayVectorEnv(BatchedEnvs):
     """`num_envs` envs, one per Ray actor, stepped together; auto-resets finished episodes."""
 
     def __init__(self, task: Mapping[str, Any], body: Mapping[str, Any], render_settings: Mapping[str, Any] | None,
-                 num_envs: int, seed: int = 0, drive=None, cpus_per_actor: float = 1.0):
+                 num_envs: int, seed: int = 0, drive=None, cpus_per_actor: float = 1.0, compiled: bool = True):
         ray = _ray()
         self.task_name, self.num_envs, self.closed = task["name"], num_envs, False
         host = ray.remote(num_cpus=cpus_per_actor)(_Host)
@@ -70,25 +77,39 @@ class RayVectorEnv(BatchedEnvs):
         self.controller = spec["controller"]
         self.why_no_controller = spec["why_not"]
         self.skills = getattr(drive, "skills", None)
+        self._graph = None
+        if compiled:
+            from ray.dag import InputNode, MultiOutputNode
 
-    def _get(self, futures: list) -> list:
+            with InputNode() as messages:
+                graph = MultiOutputNode([a.call.bind(messages[i]) for i, a in enumerate(self._actors)])
+            self._graph = graph.experimental_compile()
+
+    def _get(self, futures) -> list:
         ray = _ray()
         try:
             return ray.get(futures)
-        except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as error:
+        except ray.exceptions.RayError as error:
             self.close()
             raise WorkerError(f"a Ray env actor (task={self.task_name}) failed: {error}") from None
 
+    def _call(self, messages: list) -> list:
+        if self._graph is not None:
+            return self._get(self._graph.execute(*messages))
+        return self._get([a.call.remote(m) for a, m in zip(self._actors, messages)])
+
     def reset(self) -> dict[str, np.ndarray]:
-        return self._stack(self._get([a.reset.remote() for a in self._actors]))
+        return self._stack(self._call([("reset", None)] * self.num_envs))
 
     def step(self, actions):
-        return self._batch(self._get([a.step.remote(np.asarray(act)) for a, act in zip(self._actors, actions)]))
+        return self._batch(self._call([("step", np.asarray(a)) for a in actions]))
 
     def close(self) -> None:
         if self.closed:
             return
         self.closed = True
         ray = _ray()
+        if self._graph is not None:
+            self._graph.teardown()
         for actor in self._actors:
             ray.kill(actor)

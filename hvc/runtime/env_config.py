@@ -63,7 +63,7 @@ def vector_env(cfg: DictConfig, seed: int | None = None):
 
         connect(cfg.ray.address, cfg.ray.num_cpus)
         envs = RayVectorEnv(task, body, render, int(cfg.num_envs), seed=seed, drive=drive,
-                            cpus_per_actor=float(cfg.ray.cpus_per_actor))
+                            cpus_per_actor=float(cfg.ray.cpus_per_actor), compiled=bool(cfg.ray.compiled))
     else:
         envs = VectorEnv(task, body, render, int(cfg.num_envs), seed=seed, drive=drive,
                          in_process=int(cfg.in_process_envs))
