@@ -103,6 +103,22 @@ def test_final_iqm_with_bootstrap_interval_counts_statuses(sweep, tmp_path):
     assert three.iqm == pytest.approx(10.0)                   # the stopped and failed seeds are not zeros
 
 
+def test_an_arms_interval_is_the_same_on_every_call_and_beside_any_other_arm():
+    """Committed CIs must not change when a notebook reruns or an arm is added to its table."""
+    def scores(arms):
+        return pd.DataFrame([{"arm": arm, "status": "finished", "score": float(v), "env_steps": 100, "random": 0.0}
+                             for arm, values in arms.items() for v in values])
+
+    a = {"a": [1.0, 4.0, 9.0, 16.0, 25.0, 36.0]}
+    first = iqm_table(scores(a), ["arm"]).set_index("arm")
+    np.random.seed(123)  # whatever the global RNG holds before, and it is left as it was
+    before = np.random.get_state()[1].copy()
+    again = iqm_table(scores({**a, "b": [2.0, 3.0, 50.0]}), ["arm"]).set_index("arm")
+    np.testing.assert_array_equal(np.random.get_state()[1], before)
+    assert first.loc["a", "ci_low"] < first.loc["a", "iqm"] < first.loc["a", "ci_high"]
+    assert (again.loc["a", ["iqm", "ci_low", "ci_high"]] == first.loc["a", ["iqm", "ci_low", "ci_high"]]).all()
+
+
 def test_final_score_is_the_mean_per_episode_over_the_last_tenth(tmp_path):
     make_run(tmp_path, "r", {"seed": 0}, lambda t: 0.0 if t <= 900 else t / 10.0)
     score = final_scores(load_runs([tmp_path])).score.iloc[0]

@@ -49,11 +49,19 @@ def iqm_table(scores: pd.DataFrame, by: Sequence[str] = (), statuses: Sequence[s
                     "env_steps": used.env_steps.median() if len(used) else np.nan,
                     "random": runs.random.mean()})
         if len(used):
-            with warnings.catch_warnings():  # rliable 1.2 hands arch its random_state the old way
-                warnings.simplefilter("ignore", FutureWarning)
-                point, interval = rly.get_interval_estimates(
-                    {"arm": used.score.to_numpy()[:, None]}, lambda s: np.array([metrics.aggregate_iqm(s)]),
-                    reps=reps, random_state=np.random.RandomState(seed))
+            # rliable 1.2's StratifiedBootstrap draws its resamples from numpy's global RNG and
+            # ignores random_state, so each arm seeds that RNG itself (restored after): the same
+            # scores give the same CI on every run, whatever other arms the table holds
+            global_state = np.random.get_state()
+            np.random.seed(seed)
+            try:
+                with warnings.catch_warnings():  # rliable hands arch its random_state the old way
+                    warnings.simplefilter("ignore", FutureWarning)
+                    point, interval = rly.get_interval_estimates(
+                        {"arm": used.score.to_numpy()[:, None]}, lambda s: np.array([metrics.aggregate_iqm(s)]),
+                        reps=reps, random_state=np.random.RandomState(seed))
+            finally:
+                np.random.set_state(global_state)
             row.update(iqm=float(point["arm"][0]), ci_low=float(interval["arm"][0, 0]),
                        ci_high=float(interval["arm"][1, 0]))
         else:
