@@ -192,3 +192,16 @@ def test_every_task_kind_validate_admits_has_a_composer_builder():
     from hvc.envs.builders import TASK_BUILDERS
 
     assert set(RUNNABLE_TASK_KINDS) == set(TASK_BUILDERS)
+
+
+def test_openmp_threads_sleep_when_idle_unless_the_user_says_otherwise():
+    """Spinning OpenMP threads slowed a 2-thread learner beside another run several-fold."""
+    import os
+    import subprocess
+    import sys
+
+    code = "import hvc, os; print(os.environ['OMP_WAIT_POLICY'])"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    assert subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True).stdout.strip() == "PASSIVE"
+    env["OMP_WAIT_POLICY"] = "ACTIVE"
+    assert subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True).stdout.strip() == "ACTIVE"
