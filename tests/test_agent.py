@@ -516,3 +516,99 @@ def test_wolpertinger_acts_among_the_nearest_keys_by_their_q():
     expected = dist.log_prob(torch.from_numpy(acted.query)).sum(-1).numpy()
     np.testing.assert_allclose(acted.log_mu, expected, rtol=1e-5)
     assert np.all(np.abs(acted.query) <= 3.0)
+
+
+def test_wolpertinger_critic_regresses_query_and_key_on_targets_through_the_target_policy():
+    """critic_loss = 0.5 (mean (Q(h, query) - y)^2 + mean (Q(h, key) - y)^2) with
+    y = r + gamma d mean_i Q_target(h', clip(a'_i)), a'_i ~ pi_target(h'): computed here from the
+    target agent and the same draws. A wide sigma sends most draws past the range, so the clip
+    shows; discounts of 1 make the bootstrap count."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from hvc.algorithms.wolpertinger import WolpertingerLearner
+    from hvc.schema import WolpertingerConfig
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(3, 0, 2, False, 16, (16, 1), critic_takes_action=True))
+    selector = SimpleNamespace(keys=np.zeros((5, 2), np.float32))
+    low, high, gamma = -0.2, 0.2, 0.9
+    learner = WolpertingerLearner(agent, gamma, low, high, (2.0, 2.0), selector, 1.0,
+                                  WolpertingerConfig(value_samples=3, kl_cost=0.1))
+    batch = _continuous_batch(seed=3)
+    batch["discount"] = torch.ones_like(batch["discount"])
+    args = (batch["proprio"], batch["task"], batch["prev_reward"], batch["prev_action"])
+    with torch.no_grad():
+        _, h, _ = agent(*args, agent.unpack_state(batch["state"]), done=batch["first"])
+        t_out, t_h, _ = learner.target(*args, agent.unpack_state(batch["state"]), done=batch["first"])
+        torch.manual_seed(1)
+        mean, sigma = learner.target.gaussian(t_out[1:], low, high, (2.0, 2.0))
+        draws = [torch.distributions.Normal(mean, sigma).sample() for _ in range(3)]
+        assert np.mean([(d.abs() > high).float().mean().item() for d in draws]) > 0.5
+        v_next = torch.stack([learner.target.values(t_h[1:], d.clamp(low, high)) for d in draws]).mean(0)
+        y = batch["reward"] + gamma * batch["discount"] * v_next
+        expected = 0.5 * (((agent.values(h[:-1], batch["query"]) - y) ** 2).mean()
+                          + ((agent.values(h[:-1], batch["action"]) - y) ** 2).mean())
+    torch.manual_seed(1)
+    assert learner.update(batch)["critic_loss"] == pytest.approx(expected.item(), rel=1e-5)
+
+
+def test_wolpertinger_queries_stay_in_range_and_pick_near_their_own_position():
+    """Every env gets a choice, each query is clipped to the key space's range (float32, its
+    density that of the clipped value), and the candidates are those near that env's query: a
+    query steered to one key picks it."""
+    import numpy as np
+
+    from hvc.algorithms.wolpertinger import WolpertingerLearner
+
+    keys = np.array([[-2.5, -2.5], [2.5, 2.5], [2.5, -2.5]], np.float32)
+
+    class Nearest:  # k = 1: the key nearest the query
+        def __init__(self):
+            self.keys, self.seen = keys, []
+
+        def nearest(self, query):
+            self.seen.append(np.array(query))
+            return np.array([int(np.argmin(((keys - query) ** 2).sum(1)))])
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(3, 0, 2, False, 16, (16, 1), critic_takes_action=True))
+    selector = Nearest()
+    wide = WolpertingerLearner(agent, 0.9, -3.0, 3.0, (4.0, 4.0), selector, 1.0, seed=0)
+    n = 400
+    acted = wide.act(torch.zeros(n, 4), torch.zeros(n, 16))
+    assert len(acted.send) == n and acted.query.dtype == np.float32 and acted.query.shape == (n, 2)
+    assert np.abs(acted.query).max() == 3.0 and (acted.query == -3.0).any()  # sigma 4: many clipped
+    np.testing.assert_array_equal(np.stack(selector.seen), acted.query)
+    narrow = WolpertingerLearner(agent, 0.9, -3.0, 3.0, (0.01, 0.01), selector, 1.0, seed=0)
+    towards = torch.zeros(8, 4)
+    towards[:4, :2], towards[4:, :2] = 10.0, torch.tensor([10.0, -10.0])  # tanh: means near (3, 3), (3, -3)
+    np.testing.assert_array_equal(narrow.act(towards, torch.zeros(8, 16)).send, [1] * 4 + [2] * 4)
+
+
+def test_wolpertinger_from_config_takes_the_controller_its_temperature_and_the_run_seed():
+    """What hvc-run builds: the query controller as selector, the controller's temperature, and
+    a selection stream seeded by the run's seed (two runs of one seed choose alike)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from hvc.algorithms.wolpertinger import WolpertingerLearner
+    from hvc.config import compose
+
+    cfg = compose(["controller=query", "controller.temperature=0.37", "seed=11"])
+    selector = SimpleNamespace(keys=np.eye(3, 2, dtype=np.float32), nearest=lambda q: np.arange(3))
+    space = SimpleNamespace(low=-3.0, high=3.0)
+
+    def build():
+        torch.manual_seed(0)
+        agent = HighLevelAgent(AgentSpec(3, 0, 2, False, 16, (16, 1), critic_takes_action=True))
+        return WolpertingerLearner.from_config(agent, cfg, space, selector)
+
+    learner = build()
+    assert learner.selector is selector and learner.temperature == pytest.approx(0.37)
+    assert (learner.low, learner.high) == (-3.0, 3.0)
+    assert learner.rng.bit_generator.state == np.random.default_rng(11).bit_generator.state
+    picks = [build().act(torch.zeros(64, 4), torch.zeros(64, 16)).send for _ in range(2)]
+    np.testing.assert_array_equal(*picks)

@@ -158,3 +158,42 @@ def test_switching_holds_each_choice_one_gait_cycle_by_default():
     assert SwitchingController(_cyclic_expert(136 + 1 + 2), [stand, run], hold_steps=3).hold == 3
     with pytest.raises(ValueError, match="controller.hold_steps"):
         SwitchingController(_cyclic_expert(136 + 1 + 2), [stand, stand])
+
+
+def test_query_keys_are_normalised_per_dimension_and_the_query_space_is_bounded(library):
+    """Queries live in the keys' standardised space (zero mean, unit spread per dimension) with
+    the range the learner clips to; the fragments' own discrete space is kept for indices."""
+    from hvc.envs.spaces import ActionSpace
+
+    skills = Skills.from_library(library, 3, "query")
+    controller = QueryController(skills, k_nearest=2)
+    np.testing.assert_allclose(controller.keys.mean(0), 0.0, atol=1e-5)
+    np.testing.assert_allclose(controller.keys.std(0)[skills.keys.std(0) > 1e-3], 1.0, atol=1e-3)
+    np.testing.assert_allclose(controller.keys * controller.key_std + controller.key_mean, skills.keys, atol=1e-5)
+    assert controller.action_space == ActionSpace(discrete=False, size=skills.keys.shape[1], low=-3.0, high=3.0)
+    assert controller.selection_space == ActionSpace(discrete=True, n=len(controller.fragments))
+    assert QueryController.from_config({"k_nearest": 4}, None, skills).k == 4
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5, 9])
+def test_query_candidates_are_exactly_the_k_nearest_keys(library, k):
+    """Against a brute-force sort, for queries anywhere; k at or above the fragment count: all."""
+    controller = QueryController(Skills.from_library(library, 3, "query"), k_nearest=k)
+    rng = np.random.default_rng(k)
+    for _ in range(50):
+        query = rng.normal(size=controller.keys.shape[1]).astype(np.float32)
+        order = np.argsort(((controller.keys - query) ** 2).sum(1))
+        assert sorted(controller.nearest(query)) == sorted(order[:min(k, len(order))])
+
+
+def test_a_query_runs_its_nearest_fragment_and_an_index_runs_its_own(library):
+    controller = QueryController(Skills.from_library(library, 3, "query"), k_nearest=3)
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        query = rng.normal(size=controller.keys.shape[1]).astype(np.float32) * 2
+        controller.set_action(query)
+        nearest = int(np.argmin(((controller.keys - query) ** 2).sum(1)))
+        assert controller.current == controller.fragments[nearest]
+    for index in (4, 0, 3):
+        controller.set_action(np.int64(index))
+        assert controller.current == controller.fragments[index]
