@@ -117,3 +117,40 @@ def test_includes_are_expanded_where_the_config_is_composed_not_read_by_mocap():
     assert list(composed.included) == ["go_to_target", "go_to_target"] and not composed.include
     expand_clip_set(composed)  # twice: no change
     assert len(entries_of(composed)) == 2 * len(entries_of(compose(["clips=go_to_target"]).clips))
+
+
+def test_a_clip_entry_survives_its_dict_form():
+    """Library metadata stores entries as dicts; every field comes back."""
+    entry = ClipEntry("CMU_016_22", "run", 3, 40, cyclic=True, steps=37, steer=True)
+    assert entry.as_dict() == {"id": "CMU_016_22", "behaviour": "run", "start": 3, "end": 40, "cyclic": True,
+                               "steps": 37, "steer": True}
+    assert ClipEntry(**entry.as_dict()) == entry
+
+
+def test_bad_clip_sets_fail_naming_the_set_the_keys_and_what_is_allowed():
+    with pytest.raises(ValueError, match=r"clip set 'mine': unknown entry keys \['speed', 'stop'\]; allowed: "
+                                         r"behaviour, cyclic, end, id, start, steer, steps$"):
+        entries_of({"name": "mine", "entries": [{"id": "CMU_1", "behaviour": "run", "stop": 3, "speed": 1}]})
+    with pytest.raises(ValueError, match=r"clip set 'mine' still lists include=\['gaps'\]"):
+        entries_of({"name": "mine", "include": ["gaps"], "entries": []})
+    with pytest.raises(ValueError, match=r"clip set 'empty' is empty; pass clip=<CMU id>"):
+        select_entry({"name": "empty", "entries": []}, None)
+    assert entries_of({"name": "none"}) == []
+
+
+def test_resolve_fills_open_ranges_and_rejects_what_the_mocap_file_lacks(monkeypatch):
+    import hvc.mocap.source
+    from hvc.mocap.clip_sets import resolve
+    from hvc.mocap.clips import ClipNotFoundError
+
+    monkeypatch.setattr(hvc.mocap.source, "clip_lengths", lambda path: {"CMU_A": 50, "CMU_B": 20})
+    open_ended = ClipEntry("CMU_A", "run", 5, None, cyclic=True, steps=30, steer=True)
+    resolved = resolve([open_ended, ClipEntry("CMU_B", "stand", 0, 20)], "file.h5")
+    assert resolved == [ClipEntry("CMU_A", "run", 5, 50, True, 30, True), ClipEntry("CMU_B", "stand", 0, 20)]
+    with pytest.raises(ClipNotFoundError, match=r"clip CMU_C \(jump\) is not in file.h5; it has 2 clips, "
+                                                r"e.g. CMU_A, CMU_B"):
+        resolve([ClipEntry("CMU_C", "jump")], "file.h5")
+    for start, end in ((0, 21), (-1, 10), (20, None), (7, 7)):
+        with pytest.raises(ValueError, match=r"clip CMU_B: steps \[.*\) outside its 20 steps"):
+            resolve([ClipEntry("CMU_B", "stand", start, end)], "file.h5")
+    assert resolve([ClipEntry("CMU_B", "stand", 19, 20)], "file.h5")[0].num_steps == 1

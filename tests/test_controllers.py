@@ -197,3 +197,41 @@ def test_a_query_runs_its_nearest_fragment_and_an_index_runs_its_own(library):
     for index in (4, 0, 3):
         controller.set_action(np.int64(index))
         assert controller.current == controller.fragments[index]
+
+
+def test_fragments_controller_states_before_during_and_after_a_fragment(library):
+    """Before any choice (and after reset): nothing runs, an action is needed, records say -1;
+    fragment 0 is a valid choice, and the indices past either end are refused by name."""
+    from hvc.envs.spaces import ActionSpace
+
+    skills = Skills.from_library(library, 3)
+    controller = FragmentsController.from_config({}, None, skills)
+    assert controller.action_space == ActionSpace(discrete=True, n=5)
+    for _ in range(2):
+        assert controller.current is None and controller.fragment_index is None
+        assert controller.needs_action() and controller.record == -1.0
+        controller.set_action(0)
+        assert controller.fragment_index == (0, 0) and controller.record == 0.0 and not controller.needs_action()
+        controller.reset()
+    for bad in (-1, 5):
+        with pytest.raises(ValueError, match=rf"^fragment {bad} outside 0\.\.4$"):
+            controller.set_action(bad)
+
+
+def test_a_clips_last_fragment_runs_to_the_references_last_phase(library, monkeypatch):
+    """The expert's time input walks the fragment's steps, up to the clip's last step."""
+    import hvc.controllers.fragments as fragments_module
+
+    seen = []
+    real = fragments_module.policy_observation
+    monkeypatch.setattr(fragments_module, "policy_observation",
+                        lambda obs: seen.append(float(obs["task"][0])) or real(obs))
+    controller = FragmentsController(Skills.from_library(library, 3))
+    last = max(i for i, f in enumerate(controller.fragments) if f.clip == 0)  # clip 0: 7 steps, last fragment [6, 7)
+    fragment = controller.fragments[last]
+    controller.set_action(last)
+    phase = library.experts[0].reference.phase
+    for _ in range(fragment.length):
+        controller.body_action({"proprio": np.zeros(137 - 1, np.float32)})
+    assert seen == [float(phase[t]) for t in range(fragment.start, fragment.start + fragment.length)]
+    assert fragment.start + fragment.length == library.experts[0].reference.num_steps

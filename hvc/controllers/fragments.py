@@ -17,7 +17,6 @@ class FragmentsController:
     def __init__(self, skills):
         """`skills`: the job's hvc.skills.Skills, whose fragments are cut once per job."""
         self.library = skills.library
-        self.fragment_len = int(skills.fragment_len)
         self.fragments: list[Fragment] = skills.fragments
         self.action_space = ActionSpace(discrete=True, n=len(self.fragments))
         self.current: Fragment | None = None
