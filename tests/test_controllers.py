@@ -12,6 +12,7 @@ from hvc.controllers.fragments import FragmentsController
 from hvc.controllers.query import QueryController
 from hvc.envs.fast_env import FastEnv
 from hvc.lowlevel.library import Expert, ExpertLibrary
+from hvc.mocap.clip_sets import Fragment
 from hvc.mocap.reference import Reference
 from hvc.skills import Skills
 
@@ -175,18 +176,24 @@ def test_query_keys_are_normalised_per_dimension_and_the_query_space_is_bounded(
     assert QueryController.from_config({"k_nearest": 4}, None, skills).k == 4
 
 
-@pytest.mark.parametrize("k", [1, 2, 3, 5, 9])
+@pytest.mark.parametrize("k", [1, 2, 7, 40, 200, 300])
 def test_query_candidates_are_exactly_the_k_nearest_keys(library, k):
-    """Against a brute-force sort, for queries anywhere; k at or above the fragment count: all."""
+    """Against a brute-force sort, among 200 random keys, for queries anywhere; k at or above
+    the key count: all of them."""
     controller = QueryController(Skills.from_library(library, 3, "query"), k_nearest=k)
     rng = np.random.default_rng(k)
+    controller.keys = rng.normal(size=(200, 8)).astype(np.float32)
+    controller.k = min(k, 200)
     for _ in range(50):
-        query = rng.normal(size=controller.keys.shape[1]).astype(np.float32)
+        query = rng.normal(size=8).astype(np.float32)
         order = np.argsort(((controller.keys - query) ** 2).sum(1))
-        assert sorted(controller.nearest(query)) == sorted(order[:min(k, len(order))])
+        assert sorted(controller.nearest(query)) == sorted(order[:controller.k])
 
 
 def test_a_query_runs_its_nearest_fragment_and_an_index_runs_its_own(library):
+    """Among the k candidates, the fragment whose key is nearest the query (20000 random keys
+    standing in for the five fragments' own: numpy then leaves the candidates unsorted, so
+    their order says nothing)."""
     controller = QueryController(Skills.from_library(library, 3, "query"), k_nearest=3)
     rng = np.random.default_rng(0)
     for _ in range(30):
@@ -194,6 +201,12 @@ def test_a_query_runs_its_nearest_fragment_and_an_index_runs_its_own(library):
         controller.set_action(query)
         nearest = int(np.argmin(((controller.keys - query) ** 2).sum(1)))
         assert controller.current == controller.fragments[nearest]
+    controller.keys, controller.k = rng.normal(size=(20000, 6)).astype(np.float32), 300
+    controller.fragments = [Fragment(0, i, 1) for i in range(20000)]
+    for _ in range(10):
+        query = rng.normal(size=6).astype(np.float32)
+        controller.set_action(query)
+        assert controller.current.start == int(np.argmin(((controller.keys - query) ** 2).sum(1)))
     for index in (4, 0, 3):
         controller.set_action(np.int64(index))
         assert controller.current == controller.fragments[index]

@@ -35,9 +35,9 @@ class WolpertingerLearner(RecurrentSVG0Retrace):
         self.rng = np.random.default_rng(seed)
 
     @classmethod
-    def from_config(cls, agent, cfg, space, controller=None, **extra):
+    def from_config(cls, agent, cfg, space, controller=None):
         return super().from_config(agent, cfg, space, selector=controller, seed=int(cfg.seed),
-                                   temperature=typed(QueryControllerConfig, cfg.controller).temperature, **extra)
+                                   temperature=typed(QueryControllerConfig, cfg.controller).temperature)
 
     @torch.no_grad()
     def act(self, policy_out: torch.Tensor, h: torch.Tensor) -> Acted:
