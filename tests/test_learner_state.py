@@ -145,8 +145,32 @@ def test_load_checkpoint_refuses_agents_from_before_input_normalisation(tmp_path
         load_checkpoint(tmp_path / "old.pt")
     torch.save({"agent": {k: v for k, v in agent.items() if k != "normalizer.var_floor"}}, tmp_path / "floor.pt")
     with caplog.at_level("WARNING"):
+        load_checkpoint(tmp_path / "good.pt")
+        assert not caplog.records  # a checkpoint with its floor loads quietly
         load_checkpoint(tmp_path / "floor.pt")
-    assert "variance floor" in caplog.text
+    assert len(caplog.records) == 1
+    assert caplog.records[0].getMessage() == (
+        f"{tmp_path / 'floor.pt'} does not record its input normaliser's variance floor; assuming 0.01 "
+        f"(hvc since 2026-12-01 20:17; 1e-6 before)")
+
+
+def test_a_cuda_run_saves_and_restores_its_device_stream_and_a_cpu_run_leaves_it(monkeypatch):
+    """The CUDA stream's plumbing, without a GPU: torch.cuda's get/set are stand-ins here."""
+    calls = []
+    monkeypatch.setattr(torch.cuda, "get_rng_state",
+                        lambda device: calls.append(("get", device)) or torch.tensor([7], dtype=torch.uint8))
+    monkeypatch.setattr(torch.cuda, "set_rng_state", lambda state, device: calls.append(("set", state.tolist(), device)))
+    rng, gpu = np.random.default_rng(0), torch.device("cuda:1")
+    saved = random_states({"rng": rng}, gpu)
+    assert saved["cuda_rng"].tolist() == [7] and calls == [("get", gpu)]
+    restore_random_states(saved, {"rng": rng}, gpu)
+    assert calls[-1] == ("set", [7], gpu)
+    calls.clear()
+    on_cpu = random_states({"rng": rng}, torch.device("cpu"))
+    assert "cuda_rng" not in on_cpu
+    restore_random_states({**on_cpu, "cuda_rng": torch.tensor([1])}, {"rng": rng}, torch.device("cpu"))
+    restore_random_states(on_cpu, {"rng": rng}, gpu)  # a CPU run's checkpoint resumed on a GPU: no stream to set
+    assert calls == []
 
 
 @pytest.mark.parametrize("kind", ["vtrace", "svg0", "wolpertinger"])
