@@ -143,13 +143,18 @@ def test_resolve_fills_open_ranges_and_rejects_what_the_mocap_file_lacks(monkeyp
     from hvc.mocap.clip_sets import resolve
     from hvc.mocap.clips import ClipNotFoundError
 
-    monkeypatch.setattr(hvc.mocap.source, "clip_lengths", lambda path: {"CMU_A": 50, "CMU_B": 20})
+    files = {"file.h5": {"CMU_A": 50, "CMU_B": 20}, "many.h5": {f"CMU_{i}": 9 for i in range(7)}, "empty.h5": {}}
+    monkeypatch.setattr(hvc.mocap.source, "clip_lengths", lambda path: files[path])
     open_ended = ClipEntry("CMU_A", "run", 5, None, cyclic=True, steps=30, steer=True)
     resolved = resolve([open_ended, ClipEntry("CMU_B", "stand", 0, 20)], "file.h5")
     assert resolved == [ClipEntry("CMU_A", "run", 5, 50, True, 30, True), ClipEntry("CMU_B", "stand", 0, 20)]
     with pytest.raises(ClipNotFoundError, match=r"clip CMU_C \(jump\) is not in file.h5; it has 2 clips, "
                                                 r"e.g. CMU_A, CMU_B"):
         resolve([ClipEntry("CMU_C", "jump")], "file.h5")
+    with pytest.raises(ClipNotFoundError, match=r"it has 7 clips, e.g. CMU_0, CMU_1, CMU_2, CMU_3, CMU_4$"):
+        resolve([ClipEntry("CMU_C", "jump")], "many.h5")
+    with pytest.raises(ClipNotFoundError, match=r"is not in empty.h5; it has 0 clips$"):
+        resolve([ClipEntry("CMU_C", "jump")], "empty.h5")
     for start, end in ((0, 21), (-1, 10), (20, None), (7, 7)):
         with pytest.raises(ValueError, match=r"clip CMU_B: steps \[.*\) outside its 20 steps"):
             resolve([ClipEntry("CMU_B", "stand", start, end)], "file.h5")
