@@ -612,3 +612,40 @@ def test_wolpertinger_from_config_takes_the_controller_its_temperature_and_the_r
     assert learner.rng.bit_generator.state == np.random.default_rng(11).bit_generator.state
     picks = [build().act(torch.zeros(64, 4), torch.zeros(64, 16)).send for _ in range(2)]
     np.testing.assert_array_equal(*picks)
+
+
+def test_high_level_svg0_critic_regresses_on_retrace_targets_of_the_target_agent():
+    """critic_loss = 0.5 mean (Q(h, clip(a)) - Q_ret)^2, Q_ret from the target agent: Q_target of
+    the replayed (clipped) action, E over the target policy's clipped draws at the next step,
+    and traces lambda min(1, pi/mu) with held steps at ratio 1; episode starts reset both
+    agents' LSTMs. Computed here from the same draws."""
+    from hvc.algorithms.retrace import retrace_targets, truncated_traces
+    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+    from hvc.schema import SVG0RetraceConfig
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(3, 0, 2, False, 16, (16, 1), critic_takes_action=True))
+    low, high, gamma, lam = -0.3, 0.3, 0.9, 0.8
+    learner = RecurrentSVG0Retrace(agent, gamma, low, high, (1.0, 1.0),
+                                   SVG0RetraceConfig(value_samples=3, retrace_lambda=lam, kl_cost=0.1))
+    b = _continuous_batch(T=5, seed=4)
+    b["discount"] = torch.ones_like(b["discount"])
+    b["action"] = b["action"] * 2                                    # some replayed actions past the range
+    b["log_mu"] = torch.randn(b["log_mu"].shape, generator=torch.Generator().manual_seed(5))
+    b["new_action"][1:3] = 0.0                                       # held steps
+    b["first"][2, 1] = 1.0                                           # an episode starts mid-unroll
+    args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
+    with torch.no_grad():
+        _, h, _ = agent(*args, agent.unpack_state(b["state"]), done=b["first"])
+        t_out, t_h, _ = learner.target(*args, agent.unpack_state(b["state"]), done=b["first"])
+        torch.manual_seed(2)
+        mean, sigma = learner.target.gaussian(t_out, low, high, (1.0, 1.0))
+        draws = [torch.distributions.Normal(mean, sigma).sample()[1:] for _ in range(3)]
+        v_next = torch.stack([learner.target.values(t_h[1:], d.clamp(low, high)) for d in draws]).mean(0)
+        q_taken = learner.target.values(t_h[:-1], b["action"].clamp(low, high))
+        log_pi = torch.distributions.Normal(mean[:-1], sigma[:-1]).log_prob(b["action"]).sum(-1)
+        traces = truncated_traces(log_pi, b["log_mu"], lam, b["new_action"])
+        targets = retrace_targets(b["reward"], b["discount"], q_taken, v_next, traces, gamma)
+        expected = 0.5 * ((agent.values(h[:-1], b["action"].clamp(low, high)) - targets) ** 2).mean()
+    torch.manual_seed(2)
+    assert learner.update(b)["critic_loss"] == pytest.approx(expected.item(), rel=1e-5)
