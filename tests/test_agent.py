@@ -649,3 +649,46 @@ def test_high_level_svg0_critic_regresses_on_retrace_targets_of_the_target_agent
         expected = 0.5 * ((agent.values(h[:-1], b["action"].clamp(low, high)) - targets) ** 2).mean()
     torch.manual_seed(2)
     assert learner.update(b)["critic_loss"] == pytest.approx(expected.item(), rel=1e-5)
+
+
+def test_high_level_svg0_policy_loss_and_metrics_from_the_same_draws():
+    """policy_loss = -sum_t w_t (Q_target(h_t, clip(a(xi))) - eta KL(pi || pi_target) + c H(pi)
+    - saturation), w = new_action / max(1, count); saturation = sum (|pre-tanh mean| - 2)_+^2.
+    The reported entropy and kl are w-weighted sums, q the critic's mean. Recomputed here with
+    pi and pi_target apart (one learner step in between) and means pushed into saturation."""
+    from hvc.algorithms.svg0_retrace import MEAN_RAW_LIMIT, RecurrentSVG0Retrace
+    from hvc.schema import SVG0RetraceConfig
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(3, 0, 3, False, 16, (16, 1), critic_takes_action=True))
+    with torch.no_grad():
+        agent.policy_out.weight.mul_(40.0)                             # pre-tanh means far past the limit
+    low, high, eta, c = -0.3, 0.3, 0.7, 0.05
+    learner = RecurrentSVG0Retrace(agent, 0.9, low, high, (0.2, 0.9),
+                                   SVG0RetraceConfig(value_samples=2, kl_cost=eta, entropy_cost=c,
+                                                     learning_rate=1e-2))
+    b = _continuous_batch(T=5, seed=6, action=3)
+    b["new_action"][1:3] = 0.0
+    learner.update(b)                                                  # pi moves away from pi_target
+    args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
+    with torch.no_grad():
+        out, h, _ = agent(*args, agent.unpack_state(b["state"]), done=b["first"])
+        t_out, t_h, _ = learner.target(*args, agent.unpack_state(b["state"]), done=b["first"])
+        torch.manual_seed(3)
+        for _ in range(2):                                             # the critic's value draws come first
+            learner.distribution(learner.target, t_out).sample()
+        dist = learner.distribution(agent, out[:-1])
+        q_pi = learner.target.values(t_h[:-1], dist.rsample().clamp(low, high))
+        w = b["new_action"] / b["new_action"].sum().clamp(min=1.0)
+        entropy = dist.entropy().sum(-1)
+        kl = torch.distributions.kl_divergence(dist, learner.distribution(learner.target, t_out[:-1])).sum(-1)
+        saturation = (torch.relu(out[:-1].chunk(2, -1)[0].abs() - MEAN_RAW_LIMIT) ** 2).sum(-1)
+        assert (saturation > 0).any() and kl.abs().max() > 1e-4
+        expected = -((q_pi - eta * kl + c * entropy - saturation) * w).sum()
+        q = agent.values(h[:-1], b["action"].clamp(low, high))
+    torch.manual_seed(3)
+    got = learner.update(b)
+    assert got["policy_loss"] == pytest.approx(expected.item(), rel=1e-5)
+    assert got["entropy"] == pytest.approx((entropy * w).sum().item(), rel=1e-5)
+    assert got["kl"] == pytest.approx((kl * w).sum().item(), rel=1e-5)
+    assert got["q"] == pytest.approx(q.mean().item(), rel=1e-5)
