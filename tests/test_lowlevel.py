@@ -304,3 +304,19 @@ def test_a_nan_loss_leaves_the_expert_and_its_critic_unchanged():
     with pytest.raises(NonFiniteLoss):
         learner.update(b)
     assert all(torch.equal(before[k], v) for k, v in learner.critic.state_dict().items())
+
+
+def test_the_actor_samples_its_gaussian_and_reports_that_samples_log_density():
+    """act(mean): mean + sigma * noise from the actor's generator (float32, as the env gets it),
+    and log mu, the Gaussian log density of that very sample, which Retrace's traces divide by."""
+    learner = _learner()
+    sigma = learner.policy.sigma
+    mean = np.array([0.3, -1.2, 2.0], np.float32)
+    for seed in range(5):
+        action, log_mu = learner.act(mean, np.random.default_rng(seed))
+        noise = np.random.default_rng(seed).standard_normal(3).astype(np.float32)
+        np.testing.assert_allclose(action, mean + sigma * noise, rtol=1e-6)
+        assert action.dtype == np.float32
+        density = torch.distributions.Normal(torch.from_numpy(mean).double(), float(sigma)).log_prob(
+            torch.from_numpy(action).double()).sum().item()
+        assert log_mu == pytest.approx(density, rel=1e-5)

@@ -61,10 +61,10 @@ class SVG0Retrace(Learner):
         self.target_policy = copy.deepcopy(policy).requires_grad_(False)
         self.target_critic = copy.deepcopy(critic).requires_grad_(False)
         self.gamma = float(cfg["gamma"])
-        self.retrace_lambda = float(cfg.get("retrace_lambda", 1.0))
+        self.retrace_lambda = float(cfg["retrace_lambda"])
         self.kl_cost = float(cfg["kl_cost"])
         self.target_update_period = int(cfg["target_update_period"])
-        self.value_samples = int(cfg.get("value_samples", 4))
+        self.value_samples = int(cfg["value_samples"])
         self.policy_opt = torch.optim.Adam(policy.parameters(), lr=float(cfg["policy_lr"]))
         self.critic_opt = torch.optim.Adam(critic.parameters(), lr=float(cfg["critic_lr"]))
         self.steps = 0
