@@ -320,3 +320,28 @@ def test_the_actor_samples_its_gaussian_and_reports_that_samples_log_density():
         density = torch.distributions.Normal(torch.from_numpy(mean).double(), float(sigma)).log_prob(
             torch.from_numpy(action).double()).sum().item()
         assert log_mu == pytest.approx(density, rel=1e-5)
+
+
+def test_a_bad_policy_loss_alone_stops_the_update_before_the_critic_moves(monkeypatch):
+    """The critic steps first; a non-finite policy loss must stop both, naming the two losses."""
+    import hvc.algorithms.svg0_retrace as svg0
+    from hvc.errors import NonFiniteLoss
+
+    learner, b = _learner(), _batch()
+    before = {k: v.clone() for k, v in learner.critic.state_dict().items()}
+    monkeypatch.setattr(svg0, "svg0_policy_loss", lambda *args: torch.tensor(float("nan"), requires_grad=True))
+    with pytest.raises(NonFiniteLoss, match=r"^non-finite loss: critic [0-9.e-]+, policy nan$"):
+        learner.update(b)
+    assert all(torch.equal(before[k], v) for k, v in learner.critic.state_dict().items())
+
+
+def test_the_low_level_refreshes_its_targets_every_period_updates():
+    learner = _learner()  # target_update_period=3
+    same = lambda: all(torch.equal(a, b) for net, target in ((learner.policy, learner.target_policy),  # noqa: E731
+                                                            (learner.critic, learner.target_critic))
+                       for a, b in zip(net.state_dict().values(), target.state_dict().values()))
+    history = []
+    for seed in range(6):
+        learner.update(_batch(seed=seed))
+        history.append(same())
+    assert history == [False, False, True, False, False, True]
