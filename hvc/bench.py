@@ -259,32 +259,47 @@ def vector_env_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> t
     return num_envs * rate.pop("single"), rate
 
 
-def ray_actors_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> tuple[float, float]:
-    """(VectorEnv's env steps/s with worker processes, RayVectorEnv's with one local Ray actor per
-    env), interleaved in blocks like vector_env_sps; Ray on this machine (ray.init, loopback)."""
-    from omegaconf import OmegaConf
+def ray_actors_sps(overrides: list[str], seconds: float, num_envs: int = 2) -> dict[str, float]:
+    """Acting rates (env steps/s with the high-level agent choosing the actions, unrolls built
+    for replay, no learning) of a run's local backend (worker processes and this one, the
+    policy batched here) against Ray actors on this machine (ray.init, loopback) acting with
+    their own copies of the agent (whole unrolls, weights broadcast). Interleaved in blocks so
+    that the machine's drift hits both alike. Central acting through Ray (ray.acting=central)
+    is left out: its compiled graph's channels poll a core even while the other variant runs."""
+    import torch
 
-    from hvc.controllers.factory import Drive
-    from hvc.envs.ray_actors import RayVectorEnv, connect
-    from hvc.envs.vector_env import VectorEnv
-    from hvc.runtime.env_config import env_dicts
-    from hvc.skills import skills_for_job
+    from hvc.runtime.acting import Actor, LocalActing
+    from hvc.runtime.hl_train import build_agent, make_envs, unroll_fields
+    from hvc.runtime.ray_acting import RayActing
 
-    cfg = compose(overrides)
-    task, body, render = env_dicts(cfg)
-    controller = OmegaConf.to_container(cfg.controller, resolve=True)
-    connect(num_cpus=num_envs)
-    variants = {}
-    rng = np.random.default_rng(0)
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    base = overrides + [f"num_envs={num_envs}"]
+    cfg = compose(base)
+    n = int(cfg.task.agent.unroll)
+    local_envs = make_envs(cfg)
+    spec, agent, learner = build_agent(cfg, local_envs)
+    names = unroll_fields(spec, n, query=learner.keeps_query)
+    variants = {"local": LocalActing(Actor(agent, learner, local_envs), n, names)}
     try:
-        variants["local"] = VectorEnv(task, body, render, num_envs, seed=0, drive=Drive(controller, skills_for_job(cfg)),
-                                      in_process=0)
-        variants["ray"] = RayVectorEnv(task, body, render, num_envs, seed=0, drive=Drive(controller, skills_for_job(cfg)))
-        rate = _interleaved_sps(variants, seconds, rng)
+        in_actors = compose(base + ["actors=ray", "ray.acting=actors", f"ray.num_cpus={num_envs}"])
+        variants["actors"] = RayActing(in_actors, int(cfg.seed), run_dir=None).attach(agent)  # records nothing
+        variants["actors"].publish(0)
+        for acting in variants.values():
+            acting.collect()  # start-up (the actors' first unrolls, the workers' first steps) left out
+        elapsed, steps = dict.fromkeys(variants, 0.0), dict.fromkeys(variants, 0)
+        blocks = 5
+        for _ in range(blocks):
+            for key, acting in variants.items():
+                t0 = time.perf_counter()
+                while time.perf_counter() - t0 < seconds / blocks:
+                    steps[key] += acting.collect().env_steps
+                    acting.publish(0)
+                elapsed[key] += time.perf_counter() - t0
     finally:
-        for envs in variants.values():
-            envs.close()
-    return rate["local"], rate["ray"]
+        for acting in variants.values():
+            acting.close()
+    return {key: steps[key] / elapsed[key] for key in variants}
 
 
 def training_balance(overrides: list[str], seconds: float, total_steps: int) -> dict[str, float]:
@@ -304,8 +319,8 @@ def training_balance(overrides: list[str], seconds: float, total_steps: int) -> 
     import torch
 
     from hvc.algorithms.replay import UnrollReplay
-    from hvc.runtime.acting import Actor
-    from hvc.runtime.hl_train import build_agent, make_envs, run_hl_training, unroll_fields, write_unrolls
+    from hvc.runtime.acting import Actor, LocalActing
+    from hvc.runtime.hl_train import build_agent, make_envs, run_hl_training, unroll_fields
 
     cfg = compose(overrides + [f"total_steps={total_steps}", "hl.random_episodes=0", "progress_seconds=1e9"])
     n, batch = int(cfg.task.agent.unroll), int(cfg.algorithm.batch_size)
@@ -314,7 +329,7 @@ def training_balance(overrides: list[str], seconds: float, total_steps: int) -> 
     envs = make_envs(cfg)
     spec, agent, learner = build_agent(cfg, envs)
     replay = UnrollReplay(4096, unroll_fields(spec, n, query=learner.keeps_query))
-    actor = Actor(agent, learner, envs)
+    acting = LocalActing(Actor(agent, learner, envs), n, replay.fields)
     act_time = act_steps = learn_time = learn_transitions = 0.0
 
     def act_alone():
@@ -322,9 +337,10 @@ def training_balance(overrides: list[str], seconds: float, total_steps: int) -> 
         torch.set_num_threads(1)
         t0 = time.perf_counter()
         while time.perf_counter() - t0 < seconds / 2 or replay.size < batch:
-            start_state = agent.pack_state(actor.lstm)
-            write_unrolls(replay, [actor.step() for _ in range(n)], actor, start_state)
-            act_steps += n * envs.num_envs
+            collected = acting.collect()
+            for unroll in collected.unrolls:
+                replay.add(**unroll)
+            act_steps += collected.env_steps
         act_time += time.perf_counter() - t0
 
     def learn_alone():
@@ -412,9 +428,10 @@ def main(argv=None) -> None:
                      f"train_tps={b['train_tps']:.0f} learner_tps={b['learner_tps']:.0f} "
                      f"sum={b['sum']:.2f} goal=0.9")
     if "ray" in only:
-        local, remote = ray_actors_sps(["controller=fragments", "task=go_to_target"], args.seconds)
-        lines.append(f"bench ray_actors controller=fragments num_envs=2 workers_sps={local:.0f} ray_sps={remote:.0f} "
-                     f"ratio={remote / local:.2f} goal=0.8")
+        rates = ray_actors_sps(["controller=fragments", "task=go_to_target"], args.seconds)
+        lines.append(f"bench ray_actors controller=fragments num_envs=2 acting local_sps={rates['local']:.0f} "
+                     f"ray_actors_sps={rates['actors']:.0f} "
+                     f"ratio={rates['actors'] / rates['local']:.2f} goal=0.8")
     print()
     for line in lines:
         print(line)

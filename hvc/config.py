@@ -214,6 +214,11 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"unknown stage {cfg.stage!r}; allowed: {', '.join(STAGES)}")
     if cfg.get("actors", "local") not in ("local", "ray"):
         raise ConfigError(f"actors={cfg.actors} is not a backend; allowed: local, ray")
+    if cfg.ray.acting not in ("actors", "central"):
+        raise ConfigError(f"ray.acting={cfg.ray.acting} is not a way to act; allowed: actors, central")
+    if isinstance(cfg.ray.broadcast_every, bool) or not isinstance(cfg.ray.broadcast_every, int) \
+            or cfg.ray.broadcast_every < 1:
+        raise ConfigError(f"ray.broadcast_every={cfg.ray.broadcast_every!r} must be a positive integer (unrolls)")
     if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool):
         raise ConfigError(f"seed={cfg.seed!r} must be an integer")
     if not isinstance(cfg.video, bool):

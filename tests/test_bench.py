@@ -30,8 +30,11 @@ def test_bench_prints_every_measurement_line():
     assert train_tps > 0 and 0 < train_sps  # the run learned and acted
     assert abs(train_sps / actor_sps + train_tps / learner_tps - total) < 0.02
     if ray:
-        assert re.search(r"bench ray_actors controller=fragments num_envs=2 workers_sps=\d+ ray_sps=\d+ "
-                         r"ratio=[\d.]+ goal=0.8", out)
+        match = re.search(r"bench ray_actors controller=fragments num_envs=2 acting local_sps=(\d+) "
+                          r"ray_actors_sps=(\d+) ratio=([\d.]+) goal=0.8", out)
+        assert match
+        local, remote, ratio = map(float, match.groups())
+        assert local > 0 and remote > 0 and abs(remote / local - ratio) < 0.01
 
 
 def test_bench_only_measures_the_lines_asked_for():

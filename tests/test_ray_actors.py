@@ -69,17 +69,88 @@ def test_an_actor_failing_mid_run_is_an_error_naming_the_task(local_ray, compile
     assert envs.closed
 
 
-def test_a_training_run_with_ray_actors_writes_what_a_local_one_does(tmp_path):
+def test_training_runs_with_ray_actors_write_what_a_local_one_does(tmp_path):
+    """Acting in the actors and acting centrally: the same metrics, env steps and learner steps
+    (learning from the first unroll on: actors deliver one unroll at a time, the local backend
+    one per env, so a larger minimum would be reached at different counts)."""
     ball = ["stage=train", "body=rolling_ball", "controller=end_to_end", "num_envs=2", "total_steps=200",
-            "hl.random_episodes=1", "hl.min_replay_unrolls=2", "algorithm.batch_size=2", "task.time_limit=1.0"]
-    for name, extra in (("local", []), ("ray", ["actors=ray", "ray.num_cpus=2"])):
+            "hl.random_episodes=1", "hl.min_replay_unrolls=1", "algorithm.batch_size=2", "task.time_limit=1.0"]
+    runs = {"local": [], "actors": ["actors=ray", "ray.num_cpus=2", "ray.acting=actors"],
+            "central": ["actors=ray", "ray.num_cpus=2", "ray.acting=central"]}
+    for name, extra in runs.items():
         result = subprocess.run([sys.executable, "-m", "hvc.cli", *ball, *extra, f"hydra.run.dir={name}"],
                                 capture_output=True, text=True, cwd=tmp_path, timeout=600)
         assert result.returncode == 0, result.stderr[-3000:]
-    local, remote = (pd.read_csv(tmp_path / n / "metrics.csv") for n in ("local", "ray"))
-    assert set(remote.key) == set(local.key) and {"episode_return", "critic_loss"} <= set(remote.key)
-    assert remote.env_steps.max() == local.env_steps.max() == 200
-    assert remote.learner_steps.max() == local.learner_steps.max() > 0
+    local = pd.read_csv(tmp_path / "local" / "metrics.csv")
+    for name in ("actors", "central"):
+        remote = pd.read_csv(tmp_path / name / "metrics.csv")
+        assert set(remote.key) == set(local.key) and {"episode_return", "critic_loss"} <= set(remote.key)
+        assert remote.env_steps.max() == local.env_steps.max() == 200
+        assert remote.learner_steps.max() == local.learner_steps.max() > 0
+        returns = remote[remote.key == "episode_return"].value
+        assert len(returns) and np.isfinite(returns).all()
+
+
+def _ball_acting(extra=()):
+    from hvc.runtime.hl_train import build_agent
+    from hvc.runtime.ray_acting import RayActing
+
+    cfg = compose(["body=rolling_ball", "controller=end_to_end", "num_envs=2", "actors=ray", "ray.num_cpus=2",
+                   "task.time_limit=1.0", *extra])
+    acting = RayActing(cfg, 0, None)
+    spec, agent, learner = build_agent(cfg, acting)
+    return cfg, acting.attach(agent), spec, agent, learner
+
+
+def test_actors_act_with_the_weights_broadcast_every_few_unrolls(local_ray):
+    """Weights reach the actors only at a broadcast, every ray.broadcast_every unrolls; an
+    actor already resubmitted finishes its unroll with the weights it was sent. The unrolls
+    fit the learner's replay and feed its input normaliser."""
+    import torch
+
+    from hvc.algorithms.replay import UnrollReplay
+    from hvc.runtime.hl_train import unroll_fields
+
+    cfg, acting, spec, agent, learner = _ball_acting(["ray.broadcast_every=4"])
+    n = int(cfg.task.agent.unroll)
+
+    def set_mean(sign):  # the Gaussian's mean at one bound, its sigma at the floor
+        with torch.no_grad():
+            agent.policy_out.weight.zero_()
+            agent.policy_out.bias[:spec.action_size] = 10.0 * sign
+            agent.policy_out.bias[spec.action_size:] = -20.0
+
+    replay = UnrollReplay(16, unroll_fields(spec, n, query=learner.keeps_query))
+    try:
+        set_mean(+1)
+        acting.publish(0)
+        signs, count = [], float(agent.normalizer.count)
+        for k in range(8):
+            collected = acting.collect()
+            assert collected.env_steps == n and len(collected.unrolls) == 1
+            replay.add(**collected.unrolls[0])
+            signs.append(int(np.sign(collected.unrolls[0]["action"].mean())))
+            if k == 1:
+                set_mean(-1)  # not broadcast until 4 unrolls have come in
+            acting.publish(0)
+        assert signs == [1] * 6 + [-1] * 2
+        assert float(agent.normalizer.count) == count + 8 * n
+        assert replay.size == 8
+    finally:
+        acting.close()
+
+
+def test_an_acting_actor_lost_mid_run_is_an_error_naming_the_task(local_ray):
+    from hvc.envs.vector_env import WorkerError
+
+    _, acting, *_ = _ball_acting()
+    acting.publish(0)
+    acting.collect()
+    ray.kill(acting._actors[0])
+    with pytest.raises(WorkerError, match="task=go_to_target"):
+        for _ in range(10):
+            acting.collect()
+    assert acting.closed
 
 
 def test_a_bad_backend_fails_in_one_line():
@@ -87,3 +158,7 @@ def test_a_bad_backend_fails_in_one_line():
 
     with pytest.raises(ConfigError, match="actors=slurm is not a backend; allowed: local, ray"):
         validate(compose(["actors=slurm"]))
+    with pytest.raises(ConfigError, match="ray.acting=remote is not a way to act; allowed: actors, central"):
+        validate(compose(["ray.acting=remote"]))
+    with pytest.raises(ConfigError, match="ray.broadcast_every=0 must be a positive integer"):
+        validate(compose(["ray.broadcast_every=0"]))

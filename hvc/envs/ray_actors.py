@@ -2,11 +2,11 @@
 actors on other machines of a Ray cluster (`ray.address=<head>:6379`; none: a local Ray).
 
 Each actor hosts one env with its controller and low-level experts (vector_env's _EnvHost);
-the skills go to the object store once and every actor reads them from there. Acting stays
-central and batched in the learner process, as with worker processes: an actor sends its
-observation, the learner sends back the high-level action. With the LSTM agent acting for all
-envs in one batch there are no weights to broadcast and no policy lag; the cost is one round
-trip per control step, which the design note in the README sizes for hundreds of actors.
+the skills go to the object store once and every actor reads them from there. This is central
+acting (`ray.acting=central`, and `stage=rollout`): as with worker processes, an actor sends its
+observation and the learner sends back the high-level action, so there are no weights to
+broadcast and no policy lag, at the cost of one round trip per control step. Training acts in
+the actors by default instead (hvc.runtime.ray_acting).
 """
 from __future__ import annotations
 

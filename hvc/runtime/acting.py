@@ -8,7 +8,7 @@ episode-start flags, zeroed where an episode ended.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -105,3 +105,72 @@ class Actor:
         return Step(before[0], before[1], before[2], before[3], in_force,
                     None if self.query is None else self.query.copy(), acted.log_mu, rewards,
                     learning_discounts(discounts, dones), new, infos)
+
+
+INPUTS = ("proprio", "task", "image", "prev_reward", "prev_action", "first")  # n + 1 per unroll
+OUTCOMES = ("action", "log_mu", "reward", "discount", "new_action", "query")  # n per unroll
+
+
+def unrolls_of(steps: list[Step], actor: Actor, start_state: np.ndarray, names) -> list[dict]:
+    """One unroll per env from the actor's last `len(steps)` steps, as replay.add's keyword
+    arguments for the fields `names` (hvc.runtime.hl_train.unroll_fields): inputs at n + 1
+    steps (the last, the actor's current one, for bootstrapping), outcomes at n, the LSTM state
+    at the start. Step's fields are named as replay's; the observation's keys too."""
+    def value(step, name):
+        return step.obs[name] if name in step.obs else getattr(step, name)
+
+    tail = {**actor.obs, "prev_reward": actor.prev_reward, "prev_action": actor.prev_action, "first": actor.first}
+    inputs = [k for k in INPUTS if k in names]
+    outcomes = [k for k in OUTCOMES if k in names]
+    out = []
+    for e in range(len(start_state)):
+        fields = {k: np.stack([value(s, k)[e] for s in steps] + [tail[k][e]]) for k in inputs}
+        fields.update({k: np.stack([value(s, k)[e] for s in steps]) for k in outcomes})
+        out.append({"state": start_state[e], **fields})
+    return out
+
+
+def random_returns(envs, episodes: int, rng: np.random.Generator) -> list[float]:
+    """Returns of uniformly random high-level actions: the bar a learning curve must clear."""
+    envs.reset()
+    out: list[float] = []
+    while len(out) < episodes:
+        _, _, _, _, infos = envs.step(envs.random_actions(rng))
+        out += [i["episode_return"] for i in infos if "episode_return" in i]
+    return out[:episodes]
+
+
+@dataclass
+class Collected:
+    """What acting produced for the learner since it last asked."""
+
+    unrolls: list[dict]                                # replay.add's keyword arguments, one per unroll
+    returns: list[float] = field(default_factory=list)  # of the episodes that ended in them
+    env_steps: int = 0
+
+
+class LocalActing:
+    """The learner's process acting on its envs (worker processes and its own) in batched
+    steps: each `collect` is one unroll of `n` steps per env. The agent acting is the one
+    learning, so there are no weights to publish."""
+
+    def __init__(self, actor: Actor, n: int, names):
+        self.actor, self.n, self.names = actor, n, list(names)
+        self.num_envs = actor.envs.num_envs
+
+    def random_returns(self, episodes: int, rng: np.random.Generator) -> list[float]:
+        out = random_returns(self.actor.envs, episodes, rng)
+        self.actor.reset()
+        return out
+
+    def publish(self, updates: int) -> None:
+        pass
+
+    def collect(self) -> Collected:
+        start_state = self.actor.agent.pack_state(self.actor.lstm)
+        steps = [self.actor.step() for _ in range(self.n)]
+        returns = [i["episode_return"] for s in steps for i in s.infos if "episode_return" in i]
+        return Collected(unrolls_of(steps, self.actor, start_state, self.names), returns, self.n * self.num_envs)
+
+    def close(self) -> None:
+        self.actor.envs.close()

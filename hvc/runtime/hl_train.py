@@ -3,6 +3,8 @@
 Actors: `num_envs` envs (hvc.envs.vector_env; `in_process_envs` of them stepped by this
 process, the rest by worker processes) each run the env, its controller and the
 low-level experts; the high-level policy acts batched in this process (hvc.runtime.acting).
+With `actors=ray ray.acting=actors`, Ray actors act on their own and send whole unrolls
+(hvc.runtime.ray_acting); the loop below takes unrolls from either alike.
 Fixed-length unrolls (Table A.1 `unroll`) with the LSTM state at their start go into a
 replay buffer (Table A.1 `replay_size`, in transitions); the learner (the `algorithm`
 config's class: V-trace for the discrete controllers, SVG(0) + Retrace for the continuous
@@ -38,7 +40,7 @@ from hvc.envs.vector_env import VectorEnv
 from hvc.errors import ControllerUnavailable, HvcUserError, NonFiniteLoss
 from hvc.io.checkpoint import random_states, restore_random_states, save_checkpoint
 from hvc.io.metrics import continue_metrics
-from hvc.runtime.acting import Actor, Step
+from hvc.runtime.acting import Actor, LocalActing
 from hvc.runtime.device import torch_device
 from hvc.runtime.env_config import vector_env
 from hvc.runtime.episodes import EpisodeRecorder
@@ -65,25 +67,6 @@ def unroll_fields(spec: AgentSpec, n: int, query: bool = False) -> dict[str, Fie
     if query:
         fields["query"] = Field((n, spec.action_size))
     return fields
-
-
-INPUTS = ("proprio", "task", "image", "prev_reward", "prev_action", "first")  # n + 1 per unroll
-OUTCOMES = ("action", "log_mu", "reward", "discount", "new_action", "query")  # n per unroll
-
-
-def write_unrolls(replay: UnrollReplay, steps: list[Step], actor: Actor, start_state: np.ndarray) -> None:
-    """One unroll per env from the actor's last `len(steps)` steps, with the inputs after the
-    last step (for bootstrapping). Step's fields are named as replay's; the observation's keys too."""
-    def value(step, name):
-        return step.obs[name] if name in step.obs else getattr(step, name)
-
-    tail = {**actor.obs, "prev_reward": actor.prev_reward, "prev_action": actor.prev_action, "first": actor.first}
-    inputs = [k for k in INPUTS if k in replay.fields]
-    outcomes = [k for k in OUTCOMES if k in replay.fields]
-    for e in range(len(start_state)):
-        fields = {k: np.stack([value(s, k)[e] for s in steps] + [tail[k][e]]) for k in inputs}
-        fields.update({k: np.stack([value(s, k)[e] for s in steps]) for k in outcomes})
-        replay.add(state=start_state[e], **fields)
 
 
 def make_envs(cfg: DictConfig, seed: int | None = None) -> VectorEnv:
@@ -147,8 +130,19 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                     run_dir, resumed_at, int(cfg.total_steps))
         return {"env_steps": resumed_at, "learner_steps": int(state["counters"]["updates"]) * batch * n,
                 "episodes": int(state["counters"]["episodes"])}
-    envs = make_envs(cfg, seed=int(cfg.seed) + resumed_at)  # resumed: new episodes, not the first ones again
+    seed = int(cfg.seed) + resumed_at  # resumed: new episodes, not the first ones again
     device = torch_device(cfg.get("device", "cpu"))
+    in_actors = cfg.get("actors", "local") == "ray" and cfg.ray.get("acting", "central") == "actors"
+    if in_actors:  # Ray actors run whole unrolls with their own copy of the agent (hvc.runtime.ray_acting)
+        from hvc.runtime.ray_acting import RayActing
+
+        envs = RayActing(cfg, seed, run_dir)
+        if envs.controller is None:
+            envs.close()
+            raise ControllerUnavailable(f"controller={cfg.controller.name} could not be built: "
+                                        f"{envs.why_no_controller}")
+    else:
+        envs = make_envs(cfg, seed=seed)
     spec, agent, learner = build_agent(cfg, envs, device)
     replay = UnrollReplay(max(batch, int(cfg.task.agent.replay_size) // n),
                           unroll_fields(spec, n, query=learner.keeps_query))
@@ -172,7 +166,11 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     if dropped:
         log.info("metrics.csv: dropped %d rows logged after the checkpoint's env step %d", dropped,
                  resumed_at if state else -1)
-    actor = Actor(agent, learner, envs, EpisodeRecorder.for_run(cfg, run_dir, envs.skills))
+    if in_actors:
+        acting = envs.attach(agent)
+    else:
+        acting = LocalActing(Actor(agent, learner, envs, EpisodeRecorder.for_run(cfg, run_dir, envs.skills)), n,
+                             replay.fields)
     returns: list[float] = []  # since the last metrics row
     recent = deque(maxlen=RECENT_EPISODES)  # what progress shows
     losses: dict[str, float] = {}
@@ -184,25 +182,21 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
         with progress.closing():
             if counters["env_steps"] == 0:
                 if int(cfg.hl.random_episodes) > 0:
-                    random_returns = _random_baseline(envs, int(cfg.hl.random_episodes), rng)
+                    random_returns = acting.random_returns(int(cfg.hl.random_episodes), rng)
                     metrics.log(0, {"random_return": float(np.mean(random_returns))})
-                    actor.reset()
                 save()  # the first checkpoint: a kill from here on loses at most one interval
+            acting.publish(counters["updates"])
             while counters["env_steps"] < int(cfg.total_steps):
-                start_state = agent.pack_state(actor.lstm)
-                steps = []
-                for _ in range(n):
-                    steps.append(actor.step())
-                    for info in steps[-1].infos:
-                        if "episode_return" in info:
-                            returns.append(info["episode_return"])
-                            recent.append(info["episode_return"])
-                            counters["episodes"] += 1
-                    counters["env_steps"] += envs.num_envs
-                write_unrolls(replay, steps, actor, start_state)
+                collected = acting.collect()
+                for unroll in collected.unrolls:
+                    replay.add(**unroll)
+                returns += collected.returns
+                recent.extend(collected.returns)
+                counters["episodes"] += len(collected.returns)
+                counters["env_steps"] += collected.env_steps
                 if replay.size >= int(cfg.hl.min_replay_unrolls):
                     torch.set_num_threads(learner_threads)
-                    for _ in range(pacer.owed(envs.num_envs)):
+                    for _ in range(pacer.owed(len(collected.unrolls))):
                         try:
                             losses = learner.update(replay.sample(batch, rng, device))
                         except NonFiniteLoss as error:  # raised before the step: the state saved below is good
@@ -210,6 +204,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
                                                 f"is saved in {checkpoint}") from None
                         counters["updates"] += 1
                     torch.set_num_threads(1)
+                    acting.publish(counters["updates"])
                 if counters["env_steps"] - last_log >= int(cfg.log_every):
                     last_log = counters["env_steps"]
                     row = {"episodes": counters["episodes"],
@@ -230,16 +225,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
             save()
         finally:
             metrics.close()
-            envs.close()
+            acting.close()
     return {"env_steps": counters["env_steps"], "learner_steps": counters["updates"] * batch * n,
             "episodes": counters["episodes"]}
 
-
-def _random_baseline(envs: VectorEnv, episodes: int, rng: np.random.Generator) -> list[float]:
-    """Returns of uniformly random high-level actions: the bar a learning curve must clear."""
-    envs.reset()
-    out: list[float] = []
-    while len(out) < episodes:
-        _, _, _, _, infos = envs.step(envs.random_actions(rng))
-        out += [i["episode_return"] for i in infos if "episode_return" in i]
-    return out[:episodes]
