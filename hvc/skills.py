@@ -243,9 +243,15 @@ def _expert_sources(cfg: DictConfig, set_name: str) -> list[str]:
 
     named = [str(p) for p in (cfg.get("libraries") or {}).values() if p]
     included = [SHIPPED_DIR / f"experts_{s}.npz" for s in _included_sets(cfg.clips)]
-    shipped = sorted(p for p in SHIPPED_DIR.glob("experts_*.npz") if p.stem.removeprefix("experts_") not in OWN_POLICY)
-    ordered = named + [str(p) for p in included if p.is_file()] + [str(p) for p in shipped]
+    ordered = named + [str(p) for p in included if p.is_file()] + [str(p) for p in shipped_clip_libraries()]
     return list(dict.fromkeys(ordered))
+
+
+def shipped_clip_libraries() -> list[Path]:
+    """The shipped libraries of clip experts (not the steerable and switching policies)."""
+    from hvc.lowlevel.library import SHIPPED_DIR
+
+    return sorted(p for p in SHIPPED_DIR.glob("experts_*.npz") if p.stem.removeprefix("experts_") not in OWN_POLICY)
 
 
 def _included_sets(clips_cfg: Mapping[str, Any]) -> list[str]:
@@ -253,7 +259,9 @@ def _included_sets(clips_cfg: Mapping[str, Any]) -> list[str]:
     return list(clips_cfg.get("included") or [])
 
 
-def _skill_key(entry: Mapping[str, Any]) -> tuple:
+def skill_key(entry: Mapping[str, Any]) -> tuple:
+    """What makes two clip entries one skill: the clip, its range, looping and steering (not
+    the behaviour's name, which each set gives its own)."""
     return tuple(entry.get(k) for k in _SKILL_FIELDS)
 
 
@@ -267,8 +275,8 @@ def assemble(entries: Sequence, sources: Iterable[str]):
     for source in sources:
         library = load_library(source)
         for expert in library.experts:
-            by_skill.setdefault(_skill_key(expert.entry), (expert, Path(source).name))
-    picked = [by_skill.get(_skill_key(e.as_dict())) for e in entries]
+            by_skill.setdefault(skill_key(expert.entry), (expert, Path(source).name))
+    picked = [by_skill.get(skill_key(e.as_dict())) for e in entries]
     found = [None if p is None else p[1] for p in picked]
     if any(p is None for p in picked):
         return None, found
@@ -280,7 +288,7 @@ def assemble(entries: Sequence, sources: Iterable[str]):
 def _unique(entries: Sequence) -> list:
     seen, out = set(), []
     for e in entries:
-        if _skill_key(e.as_dict()) not in seen:
-            seen.add(_skill_key(e.as_dict()))
+        if skill_key(e.as_dict()) not in seen:
+            seen.add(skill_key(e.as_dict()))
             out.append(e)
     return out

@@ -315,6 +315,33 @@ def test_a_killed_lowlevel_run_saves_every_clip_it_was_training(tmp_path):
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
+def test_reuse_shipped_keeps_every_shipped_expert_of_the_same_skill_under_the_sets_names():
+    """clips=go_to_target_extraneous lowlevel.reuse=shipped: the 4 base behaviours and the two
+    jumps the gaps library has (same clip and range, named jump_tuck_a / jump_in_place there)
+    are kept; the two clips no shipped library has are left to train."""
+    import numpy as np
+
+    from hvc.lowlevel.library import SHIPPED_DIR, ExpertLibrary
+    from hvc.mocap.clip_sets import entries_of, resolve
+    from hvc.mocap.source import find_mocap_file
+    from hvc.config import compose
+    from hvc.runtime.lowlevel_stage import reusable_experts
+
+    cfg = compose(["clips=go_to_target_extraneous", "lowlevel.reuse=shipped"])
+    entries = resolve(entries_of(cfg.clips), str(find_mocap_file(None, "2019")))
+    reused = reusable_experts(cfg, entries)
+    assert sorted(reused) == [0, 1, 2, 3, 4, 6]
+    assert [reused[i][0].entry["behaviour"] for i in (4, 6)] == ["tuck_jump", "jump_in_place"]
+    gaps = ExpertLibrary.load(SHIPPED_DIR / "experts_gaps.npz")
+    tuck = next(i for i, e in enumerate(gaps.experts) if e.entry["behaviour"] == "jump_tuck_a")
+    x = np.random.default_rng(0).normal(size=137).astype(np.float32)
+    np.testing.assert_array_equal(reused[4][0].act(x), gaps.experts[tuck].act(x))
+    assert reused[4][1] == gaps.meta["provenance"]["env_steps"][tuck]  # its training steps go with it
+    assert reused[4][0].entry == entries[4].as_dict()
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
 def test_lowlevel_reuses_experts_of_another_library(tmp_path):
     """Only the clips the reused library lacks are trained; the others are kept as they are."""
     import numpy as np

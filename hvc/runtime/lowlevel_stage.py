@@ -57,17 +57,28 @@ def _library(source: str):
 
 
 def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
-    """{entry index: (expert, its env steps)} from `lowlevel.reuse`, a library whose experts
-    of identical clip entries are kept rather than retrained (the paper augments a set
-    "without any additional work": gaps = the 4 base behaviours + 8 jumps)."""
+    """{entry index: (expert, its env steps)} from `lowlevel.reuse`: a library, or `shipped`
+    (every shipped library of clip experts), whose experts of the same skill (clip, range,
+    looping: hvc.skills.skill_key) are kept rather than retrained, under this set's behaviour
+    names (the paper augments a set "without any additional work": gaps = the 4 base
+    behaviours + 8 jumps; forage's walk-and-turns serve heterogeneous forage's turns)."""
+    from hvc.lowlevel.library import Expert, ExpertLibrary
+    from hvc.skills import shipped_clip_libraries, skill_key
+
     source = cfg.lowlevel.get("reuse")
     if not source or cfg.clips.get("switching"):
         return {}
-    library = _library(source)
-    steps = library.meta.get("provenance", {}).get("env_steps") or [0] * len(library.experts)
-    by_entry = {json.dumps(e.entry, sort_keys=True): (e, int(n)) for e, n in zip(library.experts, steps)}
-    found = {i: by_entry[key] for i, key in enumerate(json.dumps(e.as_dict(), sort_keys=True) for e in entries)
-             if key in by_entry}
+    by_skill: dict[tuple, tuple] = {}
+    for path in shipped_clip_libraries() if source == "shipped" else [Path(source)]:
+        library = ExpertLibrary.load(path)
+        steps = library.meta.get("provenance", {}).get("env_steps") or [0] * len(library.experts)
+        for expert, n in zip(library.experts, steps):
+            by_skill.setdefault(skill_key(expert.entry), (expert, int(n)))
+    found = {}
+    for i, entry in enumerate(entries):
+        if skill_key(entry.as_dict()) in by_skill:
+            expert, n = by_skill[skill_key(entry.as_dict())]
+            found[i] = (Expert(entry.as_dict(), expert.policy, expert.reference, expert.scores), n)
     log.info("reusing %d of %d experts from %s", len(found), len(entries), source)
     return found
 
