@@ -159,7 +159,9 @@ class FastEnv:
         self.episode_return, self.episode_steps = 0.0, 0
         return self.observation()
 
-    def step(self, action: np.ndarray):
+    def advance(self, action: np.ndarray) -> None:
+        """One control step of the physics under `action`, without the task's bookkeeping
+        (reward, termination, its clock): what step() does first."""
         layout = self.layout
         model, data, logic = layout.model, layout.data, layout.logic
         data.ctrl[layout.actuators] = action
@@ -175,6 +177,10 @@ class FastEnv:
         mujoco.mj_forward(model, data)  # composer ends its step with one mj_forward too
         if logic.needs_subtree_vel:
             mujoco.mj_subtreeVel(model, data)
+
+    def step(self, action: np.ndarray):
+        self.advance(action)
+        model, data, logic = self.layout.model, self.layout.data, self.layout.logic
         logic.after_step(model, data, self.rng)
         reward = logic.reward(model, data)
         failed = logic.terminated()

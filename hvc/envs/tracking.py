@@ -6,9 +6,13 @@ looped gait cycles); the reward is the paper's tracking reward against the refer
 at the new time; the episode fails when any body part other than the hands and feet
 touches the ground (and, with `termination_error`, when the pose strays from the
 reference; with `heading_termination`, when the heading does), and ends at the clip's end.
+With `switch_states` set (hvc.lowlevel.switch_starts), a share `switch_probability` of the
+episodes starts instead from a state other skills' fragments left the body in, placed at the
+reference's place and heading: what a fragment of this clip meets after a cold switch.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
@@ -19,7 +23,7 @@ from hvc.envs.tracking_reward import TrackingFeatures, TrackingReward
 from hvc.mocap.clips import root_heading
 from hvc.mocap.reference import Reference, build_reference
 from hvc.mocap.steering import turn_from
-from hvc.rotations import quat_conj, quat_mul, quat_to_mat, rot_z
+from hvc.rotations import quat_conj, quat_mul, quat_to_mat, rot_z, yaw_rotate
 
 # Bodies allowed to touch the ground: feet and hands (the paper's termination rule).
 ALLOWED_CONTACT_BODIES = ("lfoot", "ltoes", "rfoot", "rtoes", "lhand", "lfingers", "lthumb",
@@ -50,6 +54,19 @@ def heading_error(body_quaternion: np.ndarray, ref_quaternion: np.ndarray) -> fl
     """Body heading minus the reference's (rad, wrapped to [-pi, pi))."""
     body, ref = (float(root_heading(np.asarray(q)[None])[0]) for q in (body_quaternion, ref_quaternion))
     return (body - ref + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclass
+class SwitchStates:
+    """Whole body states (the walker's qpos, qvel, act) with the root at the origin facing +x
+    (heading removed, root velocity in that frame), so that one can be placed anywhere."""
+
+    qpos: np.ndarray  # (N, nq)
+    qvel: np.ndarray  # (N, nv)
+    act: np.ndarray   # (N, na)
+
+    def __len__(self) -> int:
+        return len(self.qpos)
 
 
 class TrackingLogic(TaskLogic):
@@ -96,14 +113,17 @@ class TrackingLogic(TaskLogic):
         # behaviour switches)
         self.anchors: frozenset[int] = frozenset()
         self.reanchor = bool(cfg.get("reanchor", True))
+        self.switch_states: SwitchStates | None = None  # set by the expert trainer (switch starts)
+        self.switch_probability = 0.0
 
     # -- pose bookkeeping ------------------------------------------------------------
     def pose_to_actuation(self, joints: np.ndarray) -> np.ndarray:
         """The position-control action that drives the joints to `joints` (mocap order)."""
         return (2 * joints[self.actuator_order] - self.act_offset) / self.act_scale
 
-    def set_reference_state(self, data, t: int) -> None:
-        ref = self.reference
+    def set_reference_state(self, data, t: int, reference: Reference | None = None) -> None:
+        """The body at step t of this task's reference, or of another one."""
+        ref = self.reference if reference is None else reference
         data.qpos[self.root_qpos:self.root_qpos + 3] = ref.position[t]
         data.qpos[self.root_qpos + 3:self.root_qpos + 7] = ref.quaternion[t]
         data.qpos[self.joint_qpos] = ref.joints[t]
@@ -133,8 +153,32 @@ class TrackingLogic(TaskLogic):
         last = self.reference.num_steps - 1
         self.t = int(rng.integers(0, last)) if self.random_start else 0
         self.start = self.t
-        self.set_reference_state(data, self.t)
+        if self.switch_states is not None and rng.random() < self.switch_probability:
+            self.place_switch_state(data, int(rng.integers(len(self.switch_states))), self.t)
+        else:
+            self.set_reference_state(data, self.t)
         self.failure = False
+
+    def heading_free_state(self, data) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(qpos, qvel, act) of the body now, moved to the origin and turned to face +x."""
+        qpos, qvel = data.qpos.copy(), data.qvel.copy()
+        root, dof = self.root_qpos, self.root_dof
+        heading = float(root_heading(qpos[None, root + 3:root + 7])[0])
+        qpos[root:root + 2] = 0.0
+        qpos[root + 3:root + 7] = yaw_rotate(qpos[None, root + 3:root + 7], -heading)[0]
+        qvel[dof:dof + 3] = rot_z(-heading) @ qvel[dof:dof + 3]  # the free joint's angular velocity is local
+        return qpos, qvel, data.act.copy()
+
+    def place_switch_state(self, data, i: int, t: int) -> None:
+        """Switch state i at the reference's place and heading at step t (its own height)."""
+        s, root, dof = self.switch_states, self.root_qpos, self.root_dof
+        heading = float(root_heading(self.reference.quaternion[t:t + 1])[0])
+        data.qpos[:], data.qvel[:] = s.qpos[i], s.qvel[i]
+        data.qpos[root:root + 2] = self.reference.position[t][:2]
+        data.qpos[root + 3:root + 7] = yaw_rotate(s.qpos[i][None, root + 3:root + 7], heading)[0]
+        data.qvel[dof:dof + 3] = rot_z(heading) @ s.qvel[i][dof:dof + 3]
+        if self.has_act:
+            data.act[:] = s.act[i]
 
     def anchor(self, data, t: int) -> None:
         """Turns and moves the reference from step t on so that it starts from the body's

@@ -38,6 +38,7 @@ from hvc.io.checkpoint import random_states, restore_random_states, save_checkpo
 from hvc.io.metrics import continue_metrics
 from hvc.lowlevel.evaluation import evaluate
 from hvc.lowlevel.library import policy_observation
+from hvc.lowlevel.switch_starts import switch_starts, switch_states_for
 
 
 def reference_dataset(env: FastEnv, walks: int = 10) -> tuple[np.ndarray, np.ndarray]:
@@ -224,6 +225,11 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     if state is None:
         save()  # behaviour cloning done: a kill from here on loses at most one interval
 
+    switching = float(cfg.get("switch_starts", 0.0))
+    if switching > 0:  # after pre-training, which learns from the reference's own states
+        states = switch_states_for(env, cfg, seed)
+        for layout in env.layouts:
+            layout.logic.switch_states, layout.logic.switch_probability = states, switching
     actor = NumpyPolicy.from_torch(policy)
     pacer = Pacer(cfg["updates_per_unroll"])
     unroll, batch_size = int(cfg["unroll"]), int(cfg["batch_size"])
@@ -287,9 +293,15 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
             save()  # the launching process died (killed): keep our progress and stop
             raise SystemExit(f"parent process {parent_pid} is gone; checkpoint saved in {checkpoint}")
     save()
-    # scored as `stage=evaluate` scores it: failure by contact only, whatever termination trained it
+    # scored as `stage=evaluate` scores it: failure by contact only, whatever termination trained it,
+    # from the reference's own states; trained with switch starts, from switch states too
     env.layout.logic.termination_error = env.layout.logic.heading_termination = None
-    final = evaluate(env, _greedy(NumpyPolicy.from_torch(policy)), int(cfg["eval_episodes"]), "eval_")
+    greedy = _greedy(NumpyPolicy.from_torch(policy))
+    with switch_starts(env, 0.0):
+        final = evaluate(env, greedy, int(cfg["eval_episodes"]), "eval_")
+    if switching > 0:
+        with switch_starts(env, 1.0):
+            final.update(evaluate(env, greedy, int(cfg["eval_episodes"]), "eval_switch_"))
     metrics.log(counters["env_steps"], final, learner_steps=learner.steps * batch_size * unroll)
     metrics.close()
     env.close()

@@ -1,0 +1,119 @@
+"""Switch starts (issue 23): experts train from states other skills' fragments leave the body in."""
+import numpy as np
+import pytest
+
+from hvc.config import compose
+from hvc.mocap.source import SHARED_CLIPS
+
+pytestmark = pytest.mark.skipif(not SHARED_CLIPS.is_dir(), reason="offline CMU clips not found")
+
+
+@pytest.fixture(scope="module")
+def run_env():
+    from hvc.envs.fast_env import FastEnv
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+    from hvc.runtime.env_config import env_dicts
+
+    task, body, render = env_dicts(compose(["stage=lowlevel", "clip=run"]), tracking=True)
+    env = FastEnv.build(task, body, render, seed=0, render=False)
+    yield env, ExpertLibrary.load(shipped_library())
+    env.close()
+
+
+def _heading(quaternion):
+    from hvc.mocap.clips import root_heading
+
+    return float(root_heading(np.asarray(quaternion)[None])[0])
+
+
+def test_switch_states_stay_up_and_are_placed_at_the_references_place_and_heading(run_env):
+    import mujoco
+
+    from hvc.lowlevel.switch_starts import collect_switch_states
+
+    env, library = run_env
+    logic = env.layout.logic
+    before = env.rng.bit_generator.state
+    states = collect_switch_states(env, library.experts, 30, 3, np.random.default_rng(0))
+    assert env.rng.bit_generator.state == before  # the training's streams are untouched
+    root, dof = logic.root_qpos, logic.root_dof
+    assert len(states) == 30 and np.allclose(states.qpos[:, root:root + 2], 0.0)
+    assert np.allclose([_heading(q) for q in states.qpos[:, root + 3:root + 7]], 0.0, atol=1e-6)
+    # not 30 copies of one reference pose: the chains moved the body
+    assert np.ptp(states.qpos[:, logic.joint_qpos], axis=0).max() > 0.3
+    ref = logic.reference
+    logic.switch_states = states
+    for i, t in [(0, 5), (7, 20), (29, ref.num_steps - 2)]:
+        logic.place_switch_state(env.data, i, t)
+        mujoco.mj_forward(env.model, env.data)
+        qpos, qvel = env.data.qpos, env.data.qvel
+        np.testing.assert_allclose(qpos[root:root + 2], ref.position[t][:2])
+        assert abs(np.angle(np.exp(1j * (_heading(qpos[root + 3:root + 7]) - _heading(ref.quaternion[t]))))) < 1e-6
+        np.testing.assert_allclose(qpos[logic.joint_qpos], states.qpos[i, logic.joint_qpos])
+        assert qpos[root + 2] == pytest.approx(states.qpos[i, root + 2])  # its own height
+        assert np.linalg.norm(qvel[dof:dof + 3]) == pytest.approx(np.linalg.norm(states.qvel[i, dof:dof + 3]))
+        np.testing.assert_allclose(qvel[dof + 3:dof + 6], states.qvel[i, dof + 3:dof + 6])  # local frame
+        # the velocity turned with the body: the same in the body's own frame
+        from hvc.rotations import quat_to_mat
+
+        local = quat_to_mat(qpos[root + 3:root + 7]).T @ qvel[dof:dof + 3]
+        stored = quat_to_mat(states.qpos[i, root + 3:root + 7]).T @ states.qvel[i, dof:dof + 3]
+        np.testing.assert_allclose(local, stored, atol=1e-9)
+        assert not logic.contact_failure(env.data)
+    logic.switch_states = None
+
+
+def test_resets_start_from_switch_states_at_the_configured_share(run_env):
+    from hvc.lowlevel.switch_starts import collect_switch_states, switch_starts
+
+    env, library = run_env
+    logic = env.layout.logic
+    states = collect_switch_states(env, library.experts, 10, 3, np.random.default_rng(1))
+    bank = {tuple(np.round(q[logic.joint_qpos], 9)) for q in states.qpos}
+    logic.switch_states = states
+
+    def from_bank():
+        env.reset()
+        return tuple(np.round(env.data.qpos[logic.joint_qpos], 9)) in bank
+
+    try:
+        with switch_starts(env, 1.0):
+            assert all(from_bank() for _ in range(10))
+        with switch_starts(env, 0.0):
+            assert not any(from_bank() for _ in range(10))
+            np.testing.assert_allclose(env.data.qpos[logic.joint_qpos], logic.reference.joints[logic.t])
+        with switch_starts(env, 0.5):
+            share = np.mean([from_bank() for _ in range(200)])
+        assert 0.38 < share < 0.62
+        assert logic.switch_probability == 0.0  # restored after the block
+    finally:
+        logic.switch_states = None
+
+
+def test_an_expert_trained_with_switch_starts_is_scored_from_both_kinds_of_start(tmp_path):
+    """Its training episodes start away from the reference (a lower step reward than the same
+    run, warm-started from the shipped stand expert, without switch starts); its final
+    evaluation scores both kinds of start."""
+    import pandas as pd
+    from omegaconf import OmegaConf
+
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+    from hvc.lowlevel.train import train_expert
+    from hvc.runtime.env_config import env_dicts
+
+    stand = ExpertLibrary.load(shipped_library()).experts[0]
+    assert stand.entry["behaviour"] == "stand"
+
+    rewards = {}
+    for share in (0.0, 1.0):
+        cfg = compose(["stage=lowlevel", "task=tracking", "clip=stand", "lowlevel.bc_steps=20",
+                       "lowlevel.bc_rollouts=2", "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=3",
+                       "lowlevel.log_every=50", "lowlevel.batch_size=4", f"lowlevel.switch_starts={share}",
+                       "lowlevel.switch_states=20", "lowlevel.warm_start_critic_steps=1000"])
+        task, body, render = env_dicts(cfg)
+        out = tmp_path / str(share)
+        result = train_expert(task, body, render, OmegaConf.to_container(cfg.lowlevel), out, total_steps=150,
+                              warm_start=stand.policy)
+        assert ("eval_switch_completion" in result) == (share > 0) and "eval_completion" in result
+        rewards[share] = pd.read_csv(out / "metrics.csv").query("key == 'step_reward'").value.mean()
+    assert rewards[1.0] < 0.7 * rewards[0.0]
