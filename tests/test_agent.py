@@ -651,11 +651,13 @@ def test_high_level_svg0_critic_regresses_on_retrace_targets_of_the_target_agent
     assert learner.update(b)["critic_loss"] == pytest.approx(expected.item(), rel=1e-5)
 
 
-def test_high_level_svg0_policy_loss_and_metrics_from_the_same_draws():
+@pytest.mark.parametrize("new_steps", ["some", "one"])
+def test_high_level_svg0_policy_loss_and_metrics_from_the_same_draws(new_steps):
     """policy_loss = -sum_t w_t (Q_target(h_t, clip(a(xi))) - eta KL(pi || pi_target) + c H(pi)
     - saturation), w = new_action / max(1, count); saturation = sum (|pre-tanh mean| - 2)_+^2.
     The reported entropy and kl are w-weighted sums, q the critic's mean. Recomputed here with
-    pi and pi_target apart (one learner step in between) and means pushed into saturation."""
+    pi and pi_target apart (one learner step in between) and means pushed into saturation; with
+    a single new action in the batch its weight is 1."""
     from hvc.algorithms.svg0_retrace import MEAN_RAW_LIMIT, RecurrentSVG0Retrace
     from hvc.schema import SVG0RetraceConfig
 
@@ -669,6 +671,9 @@ def test_high_level_svg0_policy_loss_and_metrics_from_the_same_draws():
                                                      learning_rate=1e-2))
     b = _continuous_batch(T=5, seed=6, action=3)
     b["new_action"][1:3] = 0.0
+    if new_steps == "one":
+        b["new_action"].zero_()
+        b["new_action"][3, 1] = 1.0
     learner.update(b)                                                  # pi moves away from pi_target
     args = (b["proprio"], b["task"], b["prev_reward"], b["prev_action"])
     with torch.no_grad():
@@ -692,3 +697,25 @@ def test_high_level_svg0_policy_loss_and_metrics_from_the_same_draws():
     assert got["entropy"] == pytest.approx((entropy * w).sum().item(), rel=1e-5)
     assert got["kl"] == pytest.approx((kl * w).sum().item(), rel=1e-5)
     assert got["q"] == pytest.approx(q.mean().item(), rel=1e-5)
+
+
+def test_high_level_svg0_acts_in_float32_which_the_agent_reads_back_as_its_previous_action():
+    """The raw sample replay keeps and the clipped action the agent sees next are float32, one
+    log density per env: a float64 action would reach the LSTM as float64 inputs and fail."""
+    import numpy as np
+
+    from hvc.algorithms.svg0_retrace import RecurrentSVG0Retrace
+    from hvc.schema import SVG0RetraceConfig
+
+    torch.manual_seed(0)
+    agent = HighLevelAgent(AgentSpec(3, 0, 2, False, 16, (16, 1), critic_takes_action=True))
+    learner = RecurrentSVG0Retrace(agent, 0.9, -0.3, 0.3, (0.2, 0.9), SVG0RetraceConfig())
+    E = 5
+    state = agent.initial_state(E)
+    prev = torch.zeros(1, E, 2)
+    for _ in range(2):
+        out, h, state = agent(torch.randn(1, E, 3), torch.zeros(1, E, 0), torch.zeros(1, E), prev, state)
+        acted = learner.act(out[0], h[0])
+        assert acted.action.dtype == acted.seen.dtype == acted.send.dtype == np.float32
+        assert acted.log_mu.shape == (E,) and np.abs(acted.seen).max() <= 0.3
+        prev = torch.from_numpy(acted.seen)[None]

@@ -345,3 +345,32 @@ def test_the_low_level_refreshes_its_targets_every_period_updates():
         learner.update(_batch(seed=seed))
         history.append(same())
     assert history == [False, False, True, False, False, True]
+
+
+@pytest.mark.parametrize("valid_steps", ["many", "one"])
+def test_the_low_level_update_reports_the_weighted_kl_and_q_and_its_critic_loss(valid_steps):
+    """Metrics named as the trainer logs them, each the mask-weighted mean over the batch's
+    valid steps before the networks move; with a single valid step its weight is 1, so the
+    critic loss is that step's half squared error alone."""
+    from hvc.algorithms.svg0_retrace import kl_fixed_sigma
+
+    learner, b = _learner(), _batch()
+    if valid_steps == "one":
+        b.mask.zero_()
+        b.mask[1, 2] = 1.0
+    with torch.no_grad():
+        for p in learner.policy.parameters():  # online and target policies apart: a KL > 0
+            p.add_(0.3 * torch.randn_like(p))
+        weight = b.mask / b.mask.sum()
+        q = learner.critic(b.obs[:-1], b.actions)
+        kl = kl_fixed_sigma(learner.policy.mean(b.obs[:-1]), learner.target_policy.mean(b.obs[:-1]), 0.1)
+    torch.manual_seed(5)
+    targets = learner.critic_targets(b)
+    torch.manual_seed(5)
+    info = learner.update(b)
+    assert set(info) == {"critic_loss", "policy_loss", "kl", "q"}
+    assert info["q"] == pytest.approx(float((q * weight).sum()), rel=1e-5)
+    assert info["kl"] == pytest.approx(float((kl * weight).sum()), rel=1e-5) and info["kl"] > 0
+    assert info["critic_loss"] == pytest.approx(float(0.5 * ((q - targets) ** 2 * weight).sum()), rel=1e-5)
+    if valid_steps == "one":
+        assert info["critic_loss"] == pytest.approx(0.5 * float(q[1, 2] - targets[1, 2]) ** 2, rel=1e-5)

@@ -238,9 +238,8 @@ class RecurrentSVG0Retrace(Learner):
         # pinned to a bound could never follow a critic that later changes its mind
         mean_raw = out[:-1].chunk(2, -1)[0]
         saturation = (torch.relu(mean_raw.abs() - MEAN_RAW_LIMIT) ** 2).sum(-1)
-        kl = torch.zeros_like(entropy)
-        if self.kl_cost > 0:
-            kl = torch.distributions.kl_divergence(dist, self.distribution(self.target, target_out[:-1])).sum(-1)
+        # reported whatever its cost, so a run without the KL term still shows how far pi strays
+        kl = torch.distributions.kl_divergence(dist, self.distribution(self.target, target_out[:-1])).sum(-1)
         policy_loss = svg0_policy_loss(q_pi, weight, kl, self.kl_cost, self.entropy_cost * entropy - saturation)
         clipped_step(self.optimizer, critic_loss + policy_loss, self.agent.parameters())
         refresh_on_schedule(self, self.period, lambda: self.target.load_state_dict(self.agent.state_dict()))
