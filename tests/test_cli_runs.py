@@ -342,6 +342,28 @@ def test_reuse_shipped_keeps_every_shipped_expert_of_the_same_skill_under_the_se
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
+def test_reuse_takes_a_list_of_libraries(tmp_path):
+    """lowlevel.reuse=[shipped, <forage's library>]: heterogeneous forage keeps the shipped base
+    behaviours and forage's walk-and-turn (its own turn_left), and trains the rest."""
+    from hvc.config import compose
+    from hvc.lowlevel.library import Expert, ExpertLibrary, shipped_library
+    from hvc.mocap.clip_sets import entries_of, resolve
+    from hvc.mocap.source import find_mocap_file
+    from hvc.runtime.lowlevel_stage import reusable_experts
+
+    cfg = compose(["clips=heterogeneous_forage"])
+    entries = resolve(entries_of(cfg.clips), str(find_mocap_file(None, "2019")))
+    stand = ExpertLibrary.load(shipped_library()).experts[0]
+    turn = Expert({**entries[4].as_dict(), "behaviour": "walk_turn_left"}, stand.policy, stand.reference)
+    forage = ExpertLibrary([turn], {"provenance": {"env_steps": [123]}}).save(tmp_path / "experts_forage.npz")
+    cfg = compose(["clips=heterogeneous_forage", f"lowlevel.reuse=[shipped,{forage}]"])
+    reused = reusable_experts(cfg, entries)
+    assert sorted(reused) == [0, 1, 2, 3, 4]
+    assert reused[4][0].entry["behaviour"] == "turn_left" and reused[4][1] == 123
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
 def test_lowlevel_reuses_experts_of_another_library(tmp_path):
     """Only the clips the reused library lacks are trained; the others are kept as they are."""
     import numpy as np

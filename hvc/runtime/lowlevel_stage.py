@@ -57,8 +57,8 @@ def _library(source: str):
 
 
 def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
-    """{entry index: (expert, its env steps)} from `lowlevel.reuse`: a library, or `shipped`
-    (every shipped library of clip experts), whose experts of the same skill (clip, range,
+    """{entry index: (expert, its env steps)} from `lowlevel.reuse`: a library, `shipped`
+    (every shipped library of clip experts) or a list of those, whose experts of the same skill (clip, range,
     looping: hvc.skills.skill_key) are kept rather than retrained, under this set's behaviour
     names (the paper augments a set "without any additional work": gaps = the 4 base
     behaviours + 8 jumps; forage's walk-and-turns serve heterogeneous forage's turns)."""
@@ -68,8 +68,10 @@ def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
     source = cfg.lowlevel.get("reuse")
     if not source or cfg.clips.get("switching"):
         return {}
+    sources = [source] if isinstance(source, str) else list(source)  # a list: the first holding a skill wins
+    paths = [p for s in sources for p in (shipped_clip_libraries() if s == "shipped" else [Path(s)])]
     by_skill: dict[tuple, tuple] = {}
-    for path in shipped_clip_libraries() if source == "shipped" else [Path(source)]:
+    for path in paths:
         library = ExpertLibrary.load(path)
         steps = library.meta.get("provenance", {}).get("env_steps") or [0] * len(library.experts)
         for expert, n in zip(library.experts, steps):

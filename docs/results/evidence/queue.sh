@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Runs the evidence jobs listed in a jobs file ("<run dir> <hvc-run overrides...>" per line),
-# WORKERS at a time. A job whose dir has summary.json is done; one with checkpoint.pt is
-# continued with resume=<dir>; otherwise it starts in <dir>. Each job holds flock on
+# WORKERS at a time. A job whose dir has summary.json is done; one with checkpoint.pt (or, for
+# stage=lowlevel, experts/) is continued with resume=<dir>; otherwise it starts in <dir>. Each job holds flock on
 # <dir>.lock, so two queues never run the same job (the lock dies with its process).
 #   nohup docs/results/evidence/queue.sh docs/results/evidence/<figure>.jobs > outputs/evidence/<figure>.log 2>&1 &
 set -uo pipefail
@@ -12,7 +12,7 @@ HVC=${HVC:-.venv/bin/hvc-run}
 run_job() {
   local dir=$1; shift
   if [[ -f $dir/summary.json ]]; then return 0; fi
-  if [[ -f $dir/checkpoint.pt ]]; then
+  if [[ -f $dir/checkpoint.pt || -d $dir/experts ]]; then
     flock -n "$dir.lock" "$HVC" "resume=$dir" "$@"
   else
     flock -n "$dir.lock" "$HVC" "hydra.run.dir=$dir" "$@"
