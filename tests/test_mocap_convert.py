@@ -266,3 +266,182 @@ def test_converted_root_travels_leg_scale_times_the_captures_distance(converted,
     walker = clip.position[steps, :2] - clip.position[0, :2]
     assert np.linalg.norm(capture[-1]) > 2.0  # a clip that travels: a wrong scale shows by metres x (1 - scale)
     np.testing.assert_allclose(walker, scale * capture, atol=2e-3)
+
+
+def _rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _surface(gtype, size, n=400):
+    """Points on a geom's surface in its own frame, sampled densely (MuJoCo's size conventions)."""
+    import mujoco
+
+    g = mujoco.mjtGeom
+    theta = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    phi = np.linspace(0, np.pi, n // 2)
+    t, p = np.meshgrid(theta, phi)
+    sphere = np.stack([np.sin(p) * np.cos(t), np.sin(p) * np.sin(t), np.cos(p)], -1).reshape(-1, 3)
+    if gtype == g.mjGEOM_SPHERE:
+        return size[0] * sphere
+    if gtype == g.mjGEOM_ELLIPSOID:
+        return size[:3] * sphere
+    if gtype == g.mjGEOM_CAPSULE:  # radius size[0], half-length size[1] along local z
+        return np.concatenate([size[0] * sphere + [0, 0, size[1]], size[0] * sphere - [0, 0, size[1]]])
+    if gtype == g.mjGEOM_CYLINDER:
+        rim = np.stack([size[0] * np.cos(theta), size[0] * np.sin(theta), np.zeros(n)], -1)
+        return np.concatenate([rim + [0, 0, size[1]], rim - [0, 0, size[1]]])
+    if gtype == g.mjGEOM_BOX:
+        corners = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+        return corners * size[:3]
+    raise AssertionError(gtype)
+
+
+@pytest.mark.parametrize("name", ["SPHERE", "CAPSULE", "BOX", "CYLINDER", "ELLIPSOID"])
+def test_a_geoms_lowest_point_matches_its_densely_sampled_surface(name):
+    """geom_lowest_z (the floor placement's foot geometry) against the lowest of many surface
+    points, for every supported geom type, in random poses."""
+    import mujoco
+
+    gtype = int(getattr(mujoco.mjtGeom, f"mjGEOM_{name}"))
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        size = rng.uniform(0.02, 0.12, 3)
+        rot, xpos = _rotation(rng), rng.normal(size=3)
+        expected = (xpos + _surface(gtype, size) @ rot.T)[:, 2].min()
+        got = convert.geom_lowest_z(gtype, size, xpos, rot.reshape(-1))
+        assert got == pytest.approx(expected, abs=2e-5)
+
+
+def test_an_unsupported_foot_geom_is_an_error_naming_its_type():
+    import mujoco
+
+    mesh = int(mujoco.mjtGeom.mjGEOM_MESH)
+    with pytest.raises(ValueError, match=f"foot geom type {mesh} is not supported"):
+        convert.geom_lowest_z(mesh, np.ones(3), np.zeros(3), np.eye(3).reshape(-1))
+
+
+def _frames(num_frames: int, fps: float) -> asf_amc.MocapFrames:
+    """A clip moving linearly: root along x and up, turning about z at 1 rad/s, joints ramping."""
+    t = np.arange(num_frames) / fps
+    yaw = 1.0 * t
+    quat = np.stack([np.cos(yaw / 2), 0 * t, 0 * t, np.sin(yaw / 2)], -1)
+    return asf_amc.MocapFrames(root_pos=np.stack([2.0 * t, 0 * t, 1.0 + 0.5 * t], -1), root_quat=quat,
+                               joints=np.stack([t, -3 * t], -1), joint_names=("a", "b"), fps=fps, leg_length=0.9)
+
+
+@pytest.mark.parametrize("num_frames,fps,dt", [(5, 10.0, 0.03), (5, 10.0, 0.1), (2, 120.0, 1 / 240), (13, 120.0, 0.03)])
+def test_resample_samples_the_clip_every_dt_up_to_its_last_frame(num_frames, fps, dt):
+    """k * dt for k = 0 .. floor(duration / dt), duration = (frames - 1) / fps; positions and
+    joints interpolated linearly (exact for linear motion), the root's yaw by slerp (exact for
+    a constant rate), positions scaled by root_scale."""
+    frames = _frames(num_frames, fps)
+    out = convert.resample(frames, dt, root_scale=0.8)
+    duration = (num_frames - 1) / fps
+    expected_times = dt * np.arange(int(np.floor(duration / dt + 1e-9)) + 1)
+    np.testing.assert_allclose(out.times, expected_times)
+    assert out.times[-1] <= duration + 1e-9 and duration - out.times[-1] < dt
+    t = out.times
+    np.testing.assert_allclose(out.position, 0.8 * np.stack([2.0 * t, 0 * t, 1.0 + 0.5 * t], -1), atol=1e-12)
+    np.testing.assert_allclose(out.joints, np.stack([t, -3 * t], -1), atol=1e-12)
+    np.testing.assert_allclose(out.quaternion, np.stack([np.cos(t / 2), 0 * t, 0 * t, np.sin(t / 2)], -1), atol=1e-9)
+    np.testing.assert_allclose(convert.resample(frames, dt).position, out.position / 0.8)  # unscaled by default
+
+
+def test_resample_refuses_a_nonpositive_step_or_a_single_frame():
+    with pytest.raises(ValueError, match="dt must be positive, got 0"):
+        convert.resample(_frames(5, 10.0), 0.0)
+    with pytest.raises(ValueError, match="dt must be positive, got -0.1"):
+        convert.resample(_frames(5, 10.0), -0.1)
+    with pytest.raises(ValueError, match="a clip needs at least two frames to resample"):
+        convert.resample(_frames(1, 10.0), 0.03)
+
+
+@pytest.mark.parametrize("length,dt", [(25, 0.1), (24, 0.1), (100, 0.03), (7, 0.5)])
+def test_stance_minima_are_each_windows_lowest_frame(length, dt):
+    """One index per window of about 1 s (round(1 / dt) frames), the last partial window only
+    when it holds at least half a window; each the argmin within its window."""
+    heights = np.random.default_rng(length).uniform(0, 1, length)
+    n = max(1, int(round(1.0 / dt)))
+    expected = [s + int(np.argmin(heights[s:s + n])) for s in range(0, length, n) if length - s >= max(1, n // 2)]
+    got = convert.stance_minima(heights, dt)
+    np.testing.assert_array_equal(got, expected)
+    assert got.dtype.kind == "i" and all(heights[i] == heights[s:s + n].min() for i, s in zip(got, range(0, length, n)))
+
+
+def _walk(slope=(0.02, 0.0), dt=0.03, seconds=8.0, path=(0.5, 0.0), dip_at=None):
+    """Foot heights of a walk over a tilted floor: the floor's height under the root plus a gait
+    bump (0 at each stance), the root moving at `path` m/s; an optional toe dipping 10 cm at one frame."""
+    t = np.arange(0, seconds, dt)
+    xy = np.stack([path[0] * t, path[1] * t], -1) + [1.0, -2.0]
+    heights = xy @ np.asarray(slope) + 0.08 * np.abs(np.sin(np.pi * t / 0.55)) + 0.3
+    if dip_at is not None:
+        heights[dip_at] -= 0.1
+    return xy, heights, dt
+
+
+def test_the_floor_slope_is_fitted_along_the_walk_and_ignores_a_dipping_toe():
+    xy, h, dt = _walk(slope=(0.02, 0.0))
+    np.testing.assert_allclose(convert.fit_floor_slope(xy, h, dt), [0.02, 0.0], atol=2e-3)
+    xy, h, dt = _walk(slope=(0.02, 0.0), dip_at=101)  # an outlier window, refitted without it
+    np.testing.assert_allclose(convert.fit_floor_slope(xy, h, dt), [0.02, 0.0], atol=2e-3)
+    xy, h, dt = _walk(slope=(0.01, -0.03), path=(0.35, 0.35))  # diagonal: one direction of spread
+    direction = np.array([1.0, 1.0]) / np.sqrt(2)
+    got = convert.fit_floor_slope(xy, h, dt)
+    assert got @ direction == pytest.approx(np.array([0.01, -0.03]) @ direction, abs=2e-3)
+    assert abs(got @ [direction[1], -direction[0]]) < 1e-9  # across the path: left level
+
+
+def test_a_floor_slope_is_left_level_when_it_cannot_or_should_not_be_removed():
+    xy, h, dt = _walk(slope=(0.08, 0.0))                        # steeper than max_slope: stairs, ramps
+    np.testing.assert_array_equal(convert.fit_floor_slope(xy, h, dt), [0.0, 0.0])
+    xy, h, dt = _walk(slope=(0.02, 0.0), path=(0.0, 0.0))       # in place: nothing to measure
+    np.testing.assert_array_equal(convert.fit_floor_slope(xy, h, dt), [0.0, 0.0])
+    xy, h, dt = _walk(slope=(0.02, 0.0), seconds=2.4)           # fewer than 3 stance windows
+    np.testing.assert_array_equal(convert.fit_floor_slope(xy, h, dt), [0.0, 0.0])
+    xy, h, dt = _walk(slope=(0.02, 0.0), path=(0.1, 0.0))       # spread below min_spread
+    assert np.std(xy[:, 0]) < 0.3
+    np.testing.assert_array_equal(convert.fit_floor_slope(xy, h, dt), [0.0, 0.0])
+
+
+def test_the_floor_offset_puts_the_median_stance_on_the_floor_but_bounds_penetration():
+    dt = 0.1
+    heights = np.tile(np.r_[0.05, np.full(9, 0.3)], 6)         # every stance at 5 cm
+    assert convert.floor_offset(heights, dt) == pytest.approx(-0.05)
+    heights[33] = -0.2                                         # one frame far below (a bent toe)
+    assert convert.floor_offset(heights, dt) == pytest.approx(0.2 - 0.02)  # sinks it by 2 cm, no more
+    assert convert.floor_offset(heights, dt, max_penetration=0.0) == pytest.approx(0.2)
+
+
+@needs_mocap
+def test_convert_folder_writes_every_clip_once_preferring_the_amc(tmp_path):
+    """A folder as users have it (asf/, amc/, bvh/ in subfolders): every clip id once, sorted,
+    the AMC when a clip is there in both formats; the HDF5 holds what convert_clip writes."""
+    import shutil
+
+    src = tmp_path / "cmu"
+    (src / "asf").mkdir(parents=True)
+    shutil.copy(CMU / "asf" / "09.asf", src / "asf")
+    for rel in ("amc/09/09_06.amc", "bvh/16/16_41.bvh"):
+        (src / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(CMU / rel, src / rel)
+    (src / "bvh" / "09").mkdir(parents=True)
+    shutil.copy(CMU / "bvh" / "02" / "02_03.bvh", src / "bvh" / "09" / "09_06.bvh")  # same id, another take
+    (src / "notes.txt").write_text("not a clip")
+    assert convert._clip_files(src) == [src / "amc/09/09_06.amc", src / "bvh/16/16_41.bvh"]
+    out = tmp_path / "out.h5"
+    assert convert.convert_folder(src, out, dt=DT, progress=False) == ["CMU_009_06", "CMU_016_41"]
+    single = tmp_path / "single.h5"
+    convert.convert_clip(CMU / "amc/09/09_06.amc", single, walker_version="2019", dt=DT)
+    with h5py.File(out, "r") as f, h5py.File(single, "r") as g:
+        assert sorted(f) == ["CMU_009_06", "CMU_016_41"]
+        np.testing.assert_allclose(f["CMU_009_06/walkers/walker_0/position"][()],
+                                   g["CMU_009_06/walkers/walker_0/position"][()])  # the AMC's, 141 frames
+    with pytest.raises(FileNotFoundError, match=f"no .amc or .bvh files under {tmp_path / 'asf_only'}"):
+        (tmp_path / "asf_only").mkdir()
+        convert.convert_folder(tmp_path / "asf_only", out, progress=False)
+    with pytest.raises(ValueError, match=r"walker_version must be one of \['2019', '2020'\], got '2018'"):
+        convert.convert_folder(src, out, walker_version="2018", progress=False)

@@ -102,23 +102,8 @@ class WalkerPoser:
 
     def lowest_foot_z(self) -> float:
         """Height of the lowest point of any foot/toe geom in the current pose (m)."""
-        z = np.inf
-        for gtype, size, xpos, xmat in zip(self._feet.type, self._feet.size, self._feet.xpos, self._feet.xmat):
-            zaxis_row = xmat.reshape(3, 3)[2]  # z components of the geom's local axes
-            if gtype == mujoco.mjtGeom.mjGEOM_SPHERE:
-                low = xpos[2] - size[0]
-            elif gtype == mujoco.mjtGeom.mjGEOM_CAPSULE:
-                low = xpos[2] - abs(zaxis_row[2]) * size[1] - size[0]
-            elif gtype == mujoco.mjtGeom.mjGEOM_BOX:
-                low = xpos[2] - np.abs(zaxis_row) @ size
-            elif gtype == mujoco.mjtGeom.mjGEOM_CYLINDER:
-                low = xpos[2] - abs(zaxis_row[2]) * size[1] - np.hypot(*zaxis_row[:2]) * size[0]
-            elif gtype == mujoco.mjtGeom.mjGEOM_ELLIPSOID:
-                low = xpos[2] - np.sqrt(np.sum((zaxis_row * size) ** 2))
-            else:
-                raise ValueError(f"foot geom type {gtype} is not supported for floor placement")
-            z = min(z, float(low))
-        return z
+        return min(geom_lowest_z(int(gtype), size, xpos, xmat)
+                   for gtype, size, xpos, xmat in zip(self._feet.type, self._feet.size, self._feet.xpos, self._feet.xmat))
 
     def foot_heights(self, position: np.ndarray, quaternion: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """Per step (rows of the (T, .) inputs) the lowest foot point's height (m)."""
@@ -130,6 +115,25 @@ class WalkerPoser:
 
     def qpos(self) -> np.ndarray:
         return np.array(self.physics.data.qpos)
+
+
+def geom_lowest_z(gtype: int, size: np.ndarray, xpos: np.ndarray, xmat: np.ndarray) -> float:
+    """Height of a geom's lowest point (m) from its MuJoCo type, size, world position and
+    row-major rotation (local to world): the support point against -z, in closed form."""
+    zaxis_row = np.asarray(xmat).reshape(3, 3)[2]  # z components of the geom's local axes
+    if gtype == mujoco.mjtGeom.mjGEOM_SPHERE:
+        low = xpos[2] - size[0]
+    elif gtype == mujoco.mjtGeom.mjGEOM_CAPSULE:
+        low = xpos[2] - abs(zaxis_row[2]) * size[1] - size[0]
+    elif gtype == mujoco.mjtGeom.mjGEOM_BOX:
+        low = xpos[2] - np.abs(zaxis_row) @ size
+    elif gtype == mujoco.mjtGeom.mjGEOM_CYLINDER:
+        low = xpos[2] - abs(zaxis_row[2]) * size[1] - np.hypot(*zaxis_row[:2]) * size[0]
+    elif gtype == mujoco.mjtGeom.mjGEOM_ELLIPSOID:
+        low = xpos[2] - np.sqrt(np.sum((zaxis_row * size) ** 2))
+    else:
+        raise ValueError(f"foot geom type {gtype} is not supported for floor placement")
+    return float(low)
 
 
 # --------------------------------------------------------------------------- resampling
