@@ -445,3 +445,59 @@ def test_convert_folder_writes_every_clip_once_preferring_the_amc(tmp_path):
         convert.convert_folder(tmp_path / "asf_only", out, progress=False)
     with pytest.raises(ValueError, match=r"walker_version must be one of \['2019', '2020'\], got '2018'"):
         convert.convert_folder(src, out, walker_version="2018", progress=False)
+
+
+@needs_mocap
+def test_write_clip_records_its_provenance_and_the_walker_in_dm_controls_layout(tmp_path, poser):
+    """The group's attrs (date, source, leg scale, floor fit, highest stance foot), the walker's
+    (class, model, mass, end effectors, appendages) and the per-step fields, into a new nested dir."""
+    import datetime
+
+    frames = convert.load_frames(CMU / "amc/09/09_06.amc")
+    feats = convert.compute_features(frames, poser, dt=DT)
+    out = tmp_path / "a" / "b" / "clips.h5"
+    convert.write_clip(out, "CMU_009_06", feats, poser, source="09_06.amc", date=datetime.date(2026, 3, 14))
+    walker = poser.walker
+    with h5py.File(out, "r") as f:
+        g = f["CMU_009_06"]
+        assert (g.attrs["year"], g.attrs["month"], g.attrs["day"]) == (2026, 3, 14)
+        assert g.attrs["hvc_source"] == b"09_06.amc" and g.attrs["dt"] == DT
+        assert g.attrs["num_steps"] == len(feats.fields["position"])
+        assert g.attrs["hvc_leg_scale"] == feats.leg_scale and g.attrs["hvc_z_offset"] == feats.z_offset
+        np.testing.assert_array_equal(g.attrs["hvc_floor_slope"], feats.floor_slope)
+        assert g.attrs["hvc_floor_slope"].dtype == np.float64
+        stance = feats.foot_heights[convert.stance_minima(feats.foot_heights, DT)]
+        assert g.attrs["hvc_max_stance_foot_height"] == stance.max()
+        w = g["walkers/walker_0"]
+        assert w.attrs["name"] == type(walker).__name__.encode() and w.attrs["mass"] == poser.mass
+        assert list(w.attrs["end_effector_names"]) == [b.name.encode() for b in walker.end_effectors]
+        assert list(w.attrs["appendage_names"]) == [b.name.encode() for b in walker.end_effectors] + [
+            walker.head.name.encode()]
+        np.testing.assert_array_equal(w["position"][()].T, feats.fields["position"])
+    convert.write_clip(out, "CMU_009_06", feats, poser)  # replaced in place, today's date, no source
+    with h5py.File(out, "r") as f:
+        assert f["CMU_009_06"].attrs["hvc_source"] == b"" and f["CMU_009_06"].attrs["year"] == datetime.date.today().year
+
+
+def test_finite_difference_velocities_forward_and_central(poser):
+    """Per hinge dof, forward: (q[t+1] - q[t]) / dt with the last repeated; central: the mean of
+    the forward differences on either side, one-sided at both ends; a single frame: zeros."""
+    model = poser.physics.model.ptr
+    rng = np.random.default_rng(0)
+    steps, dt = 7, 0.03
+    qpos = np.tile(poser.qpos(), (steps, 1))
+    hinge = [j for j in range(model.njnt) if model.jnt_type[j] == 3]  # mjJNT_HINGE
+    qadr, vadr = model.jnt_qposadr[hinge], model.jnt_dofadr[hinge]
+    qpos[:, qadr] += np.cumsum(rng.normal(0, 0.05, (steps, len(hinge))), 0)  # uneven steps
+    fwd = np.diff(qpos[:, qadr], axis=0) / dt
+    forward = convert.finite_difference_qvel(model, qpos, dt, "forward")
+    np.testing.assert_allclose(forward[:, vadr], np.concatenate([fwd, fwd[-1:]]), atol=1e-9)
+    central = convert.finite_difference_qvel(model, qpos, dt, "central")
+    expected = np.concatenate([fwd[:1], 0.5 * (fwd[:-1] + fwd[1:]), fwd[-1:]])
+    np.testing.assert_allclose(central[:, vadr], expected, atol=1e-9)
+    assert np.abs(central[:, :6]).max() < 1e-9  # the free joint did not move
+    np.testing.assert_array_equal(convert.finite_difference_qvel(model, qpos[:1], dt, "central"), np.zeros((1, model.nv)))
+    two = convert.finite_difference_qvel(model, qpos[:2], dt, "central")
+    np.testing.assert_allclose(two[:, vadr], np.concatenate([fwd[:1], fwd[:1]]), atol=1e-9)
+    with pytest.raises(ValueError, match="velocity_scheme must be 'central' or 'forward', got 'backward'"):
+        convert.finite_difference_qvel(model, qpos, dt, "backward")
