@@ -501,3 +501,79 @@ def test_finite_difference_velocities_forward_and_central(poser):
     np.testing.assert_allclose(two[:, vadr], np.concatenate([fwd[:1], fwd[:1]]), atol=1e-9)
     with pytest.raises(ValueError, match="velocity_scheme must be 'central' or 'forward', got 'backward'"):
         convert.finite_difference_qvel(model, qpos, dt, "backward")
+
+
+def test_wrap_to_ranges_moves_each_angle_by_whole_turns_to_nearest_its_ranges_centre():
+    ranges = np.array([[-1.0, 1.0], [0.5, 2.5], [-3.0, -1.0]])
+    centre = ranges.mean(axis=1)
+    rng = np.random.default_rng(3)
+    base = centre + rng.uniform(-np.pi + 1e-3, np.pi - 1e-3, (50, 3))   # within half a turn: unchanged
+    np.testing.assert_allclose(convert.wrap_to_ranges(base, ranges), base)
+    turned = base + 2 * np.pi * rng.integers(-3, 4, (50, 3))
+    np.testing.assert_allclose(convert.wrap_to_ranges(turned, ranges), base, atol=1e-9)
+
+
+def _asf_layout(root: Path, asf_names, clip_rel: str) -> Path:
+    (root / "asf").mkdir(parents=True, exist_ok=True)
+    for name in asf_names:
+        (root / "asf" / name).write_text("")
+    clip = root / clip_rel
+    clip.parent.mkdir(parents=True, exist_ok=True)
+    clip.write_text("")
+    return clip
+
+
+def test_find_asf_follows_the_cmu_layout(tmp_path, monkeypatch):
+    """AMC: its subject's ASF beside it or in <root>/asf; BVH: 16.asf first, else the first ASF
+    there is; a miss names what was looked for and where."""
+    amc = _asf_layout(tmp_path / "a", ["07.asf", "16.asf"], "amc/07/07_05.amc")
+    assert convert.find_asf(amc, bvh=False) == tmp_path / "a/asf/07.asf"
+    (amc.parent / "07.asf").write_text("")
+    assert convert.find_asf(amc, bvh=False) == amc.parent / "07.asf"       # beside the clip wins
+    bvh = _asf_layout(tmp_path / "b", ["02.asf", "09.asf", "16.asf"], "bvh/35/35_17.bvh")
+    assert convert.find_asf(bvh, bvh=True) == tmp_path / "b/asf/16.asf"
+    bvh = _asf_layout(tmp_path / "c", ["09.asf", "02.asf"], "bvh/35/35_17.bvh")
+    assert convert.find_asf(bvh, bvh=True) == tmp_path / "c/asf/02.asf"   # any: the first by name
+    named = _asf_layout(tmp_path / "d", ["16.asf"], "bvh/x/walk.bvh")      # no CMU id in the name
+    assert convert.find_asf(named, bvh=True) == tmp_path / "d/asf/16.asf"
+    flat = _asf_layout(tmp_path / "e", [], "bvh/49_02.bvh")
+    (tmp_path / "e" / "asf" / "49.asf").write_text("")
+    monkeypatch.chdir(tmp_path / "e")
+    assert convert.find_asf(Path("bvh/49_02.bvh"), bvh=True) == Path("asf/49.asf")  # a path of two parts only
+    lone = _asf_layout(tmp_path / "f", ["02.asf"], "amc/07/07_05.amc")
+    with pytest.raises(FileNotFoundError, match=r"07_05.amc: no ASF found; looked for subject 07's ASF in \[.*"
+                                                r"amc/07', .*amc/asf', .*f/asf'\]; pass asf_path="):
+        convert.find_asf(lone, bvh=False)
+    bare = tmp_path / "g" / "bvh" / "16" / "16_41.bvh"
+    bare.parent.mkdir(parents=True)
+    with pytest.raises(FileNotFoundError, match=r"looked for any CMU ASF \(for bone axes\) in"):
+        convert.find_asf(bare, bvh=True)
+    assert flat.exists()
+
+
+@needs_mocap
+def test_convert_clip_passes_its_options_through(tmp_path, poser):
+    """dt, the velocity scheme, floor levelling, the ASF, the id and the date reach the file."""
+    import datetime
+    import shutil
+
+    amc = tmp_path / "elsewhere" / "02_01.amc"                 # no CMU layout: the ASF must be given
+    amc.parent.mkdir()
+    shutil.copy(CMU / "amc/02/02_01.amc", amc)
+    out = tmp_path / "out.h5"
+    common = dict(walker_version="2019", asf_path=CMU / "asf/02.asf", poser=poser)
+    convert.convert_clip(amc, out, dt=0.05, clip_id="plain", level_floor=False, velocity_scheme="forward",
+                         date=datetime.date(2020, 1, 2), **common)
+    convert.convert_clip(amc, out, dt=0.05, clip_id="levelled", **common)
+    frames = convert.load_frames(CMU / "amc/02/02_01.amc")
+    with h5py.File(out, "r") as f:
+        plain, levelled = f["plain"], f["levelled"]
+        assert plain.attrs["dt"] == 0.05 and plain.attrs["num_steps"] == int(np.floor((frames.num_frames - 1) / 120 / 0.05 + 1e-9)) + 1
+        assert plain.attrs["hvc_source"] == b"02_01.amc" and (plain.attrs["year"], plain.attrs["day"]) == (2020, 2)
+        np.testing.assert_array_equal(plain.attrs["hvc_floor_slope"], [0.0, 0.0])
+        assert np.linalg.norm(levelled.attrs["hvc_floor_slope"]) > 0.005  # subject 02's floor is tilted
+        pos = plain["walkers/walker_0/position"][()].T
+        vel = plain["walkers/walker_0/velocity"][()].T
+        np.testing.assert_allclose(vel[:-1], np.diff(pos, axis=0) / 0.05, atol=1e-6)  # forward differences
+    with pytest.raises(ValueError, match="poser is for walker 2019, walker_version='2020'"):
+        convert.convert_clip(amc, out, walker_version="2020", poser=poser)
