@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import re
 from pathlib import Path
 
 import h5py
@@ -360,7 +361,7 @@ def test_resample_refuses_a_nonpositive_step_or_a_single_frame():
         convert.resample(_frames(1, 10.0), 0.03)
 
 
-@pytest.mark.parametrize("length,dt", [(25, 0.1), (24, 0.1), (100, 0.03), (7, 0.5)])
+@pytest.mark.parametrize("length,dt", [(25, 0.1), (24, 0.1), (100, 0.03), (82, 0.03), (7, 0.5), (5, 1.0)])
 def test_stance_minima_are_each_windows_lowest_frame(length, dt):
     """One index per window of about 1 s (round(1 / dt) frames), the last partial window only
     when it holds at least half a window; each the argmin within its window."""
@@ -417,34 +418,82 @@ def test_the_floor_offset_puts_the_median_stance_on_the_floor_but_bounds_penetra
 
 
 @needs_mocap
-def test_convert_folder_writes_every_clip_once_preferring_the_amc(tmp_path):
+def test_convert_folder_writes_every_clip_once_preferring_the_amc(tmp_path, capsys):
     """A folder as users have it (asf/, amc/, bvh/ in subfolders): every clip id once, sorted,
-    the AMC when a clip is there in both formats; the HDF5 holds what convert_clip writes."""
+    the AMC when a clip is there in both formats (here a BVH of the same id sorts first); at
+    the defaults (dt 0.03, floor levelled) the HDF5 holds what convert_clip writes."""
     import shutil
 
     src = tmp_path / "cmu"
     (src / "asf").mkdir(parents=True)
-    shutil.copy(CMU / "asf" / "09.asf", src / "asf")
-    for rel in ("amc/09/09_06.amc", "bvh/16/16_41.bvh"):
+    shutil.copy(CMU / "asf" / "02.asf", src / "asf")
+    for rel in ("amc/02/02_01.amc", "bvh/16/16_41.bvh"):
         (src / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(CMU / rel, src / rel)
-    (src / "bvh" / "09").mkdir(parents=True)
-    shutil.copy(CMU / "bvh" / "02" / "02_03.bvh", src / "bvh" / "09" / "09_06.bvh")  # same id, another take
+    (src / "a_bvh" / "02").mkdir(parents=True)
+    shutil.copy(CMU / "bvh" / "02" / "02_03.bvh", src / "a_bvh" / "02" / "02_01.bvh")  # same id, another take
     (src / "notes.txt").write_text("not a clip")
-    assert convert._clip_files(src) == [src / "amc/09/09_06.amc", src / "bvh/16/16_41.bvh"]
+    assert convert._clip_files(src) == [src / "amc/02/02_01.amc", src / "bvh/16/16_41.bvh"]
     out = tmp_path / "out.h5"
-    assert convert.convert_folder(src, out, dt=DT, progress=False) == ["CMU_009_06", "CMU_016_41"]
+    assert convert.convert_folder(src, out) == ["CMU_002_01", "CMU_016_41"]
+    bar = capsys.readouterr().err  # a progress bar by default, named after the file, counting clips
+    assert "convert -> out.h5" in bar and "2/2" in bar and "clip/s" in bar
     single = tmp_path / "single.h5"
-    convert.convert_clip(CMU / "amc/09/09_06.amc", single, walker_version="2019", dt=DT)
+    convert.convert_clip(CMU / "amc/02/02_01.amc", single)
     with h5py.File(out, "r") as f, h5py.File(single, "r") as g:
-        assert sorted(f) == ["CMU_009_06", "CMU_016_41"]
-        np.testing.assert_allclose(f["CMU_009_06/walkers/walker_0/position"][()],
-                                   g["CMU_009_06/walkers/walker_0/position"][()])  # the AMC's, 141 frames
+        assert sorted(f) == ["CMU_002_01", "CMU_016_41"] and f["CMU_002_01"].attrs["dt"] == 0.03
+        np.testing.assert_allclose(f["CMU_002_01/walkers/walker_0/position"][()],
+                                   g["CMU_002_01/walkers/walker_0/position"][()])  # the AMC's
+        assert np.linalg.norm(f["CMU_002_01"].attrs["hvc_floor_slope"]) > 0.005  # levelled by default
     with pytest.raises(FileNotFoundError, match=f"no .amc or .bvh files under {tmp_path / 'asf_only'}"):
         (tmp_path / "asf_only").mkdir()
         convert.convert_folder(tmp_path / "asf_only", out, progress=False)
     with pytest.raises(ValueError, match=r"walker_version must be one of \['2019', '2020'\], got '2018'"):
         convert.convert_folder(src, out, walker_version="2018", progress=False)
+
+
+@needs_mocap
+def test_compute_features_defaults_and_its_missing_joints_error(poser):
+    """dt 0.03, central velocities, a levelled floor and 2 cm of allowed penetration by default;
+    the root's path scaled by the legs' ratio; a clip without a walker joint's angle is refused."""
+    frames = convert.load_frames(CMU / "amc/02/02_01.amc")
+    default = convert.compute_features(frames, poser)
+    explicit = convert.compute_features(frames, poser, dt=0.03, velocity_scheme="central", level_floor=True,
+                                        max_penetration=0.02)
+    assert default.dt == 0.03 and np.linalg.norm(default.floor_slope) > 0.005
+    assert default.z_offset == explicit.z_offset and default.leg_scale == poser.leg_length / frames.leg_length
+    for k in explicit.fields:
+        np.testing.assert_array_equal(default.fields[k], explicit.fields[k])
+    travel = default.fields["position"][-1, :2] - default.fields["position"][0, :2]
+    capture = frames.root_pos[-1, :2] - frames.root_pos[0, :2]
+    assert np.linalg.norm(travel) == pytest.approx(default.leg_scale * np.linalg.norm(capture), rel=2e-3)
+    short = dataclasses.replace(frames, joints=frames.joints[:, 1:], joint_names=frames.joint_names[1:])
+    missing = [n for n in poser.joint_names if n not in short.joint_names]
+    with pytest.raises(ValueError, match=f"^{re.escape(f'clip has no angles for walker joints {missing}')}$"):
+        convert.compute_features(short, poser)
+
+
+def test_walker_defaults_errors_and_mass():
+    import mujoco
+
+    poser = convert.WalkerPoser()
+    assert poser.walker_version == "2019" and type(convert.make_walker()) is type(poser.walker)
+    model = poser.physics.model.ptr
+    assert poser.mass == pytest.approx(float(model.body_mass.sum()), rel=1e-6) and poser.mass > 30
+    poser.set_pose(np.array([0, 0, 1.0]), np.array([1.0, 0, 0, 0]), np.zeros(len(poser.joint_names)))
+    assert not np.any(poser.physics.data.qvel)  # no velocities given: at rest
+    with pytest.raises(ValueError, match=r"^walker_version must be one of \['2019', '2020'\], got '2018'$"):
+        convert.make_walker("2018")
+    with pytest.raises(ValueError, match=r"walks.txt: expected a .amc or .bvh file$"):
+        convert.load_frames("walks.txt")
+    with pytest.raises(ValueError, match="^a clip needs at least two frames to resample$"):
+        convert.resample(_frames(1, 10.0), 0.03)
+    assert mujoco.mjtGeom.mjGEOM_CAPSULE  # the enum the geometry test uses
+
+
+def test_stance_minima_of_too_short_a_clip_is_empty_and_of_integers():
+    got = convert.stance_minima(np.zeros(10), 0.03)  # under half of a 33-step window
+    assert got.shape == (0,) and got.dtype.kind == "i"
 
 
 @needs_mocap
@@ -577,3 +626,23 @@ def test_convert_clip_passes_its_options_through(tmp_path, poser):
         np.testing.assert_allclose(vel[:-1], np.diff(pos, axis=0) / 0.05, atol=1e-6)  # forward differences
     with pytest.raises(ValueError, match="poser is for walker 2019, walker_version='2020'"):
         convert.convert_clip(amc, out, walker_version="2020", poser=poser)
+
+
+def test_find_asf_looks_two_levels_up_from_a_clip_three_parts_deep(tmp_path, monkeypatch):
+    clip = _asf_layout(tmp_path, ["16.asf"], "bvh/16/16_41.bvh")
+    monkeypatch.chdir(tmp_path)
+    assert convert.find_asf(Path("bvh/16/16_41.bvh"), bvh=True) == Path("asf/16.asf")
+    assert clip.exists()
+
+
+def test_the_floor_slope_is_fitted_in_both_directions_of_a_walk_that_spreads_in_both():
+    """A walk around a square (both directions spread): the gradient's two components add up."""
+    dt, seconds = 0.03, 16.0
+    t = np.arange(0, seconds, dt)
+    side = (t % 16.0) / 4.0                      # four legs of 4 s, 0.5 m/s
+    leg, f = side.astype(int), side % 1.0
+    corners = np.array([[0, 0], [2, 0], [2, 2], [0, 2], [0, 0]], float)
+    xy = corners[leg] + (corners[leg + 1] - corners[leg]) * f[:, None]
+    slope = np.array([0.015, -0.025])
+    heights = xy @ slope + 0.08 * np.abs(np.sin(np.pi * t / 0.55)) + 0.3
+    np.testing.assert_allclose(convert.fit_floor_slope(xy, heights, dt), slope, atol=2e-3)
