@@ -105,7 +105,11 @@ def _ball_acting(extra=()):
 def test_actors_act_with_the_weights_broadcast_every_few_unrolls(local_ray):
     """Weights reach the actors only at a broadcast, every ray.broadcast_every unrolls; an
     actor already resubmitted finishes its unroll with the weights it was sent. The unrolls
-    fit the learner's replay and feed its input normaliser."""
+    fit the learner's replay and feed its input normaliser.
+
+    New weights are set after the 2nd unroll and broadcast after the 4th: the first 4 unrolls
+    and the two already under way then (one per actor, whichever delivers first) act with the
+    old ones, so exactly 6 of the 12 do, the first 5 among them; all later ones the new."""
     import torch
 
     from hvc.algorithms.replay import UnrollReplay
@@ -125,7 +129,7 @@ def test_actors_act_with_the_weights_broadcast_every_few_unrolls(local_ray):
         set_mean(+1)
         acting.publish(0)
         signs, count = [], float(agent.normalizer.count)
-        for k in range(8):
+        for k in range(12):
             collected = acting.collect()
             assert collected.env_steps == n and len(collected.unrolls) == 1
             replay.add(**collected.unrolls[0])
@@ -133,9 +137,9 @@ def test_actors_act_with_the_weights_broadcast_every_few_unrolls(local_ray):
             if k == 1:
                 set_mean(-1)  # not broadcast until 4 unrolls have come in
             acting.publish(0)
-        assert signs == [1] * 6 + [-1] * 2
-        assert float(agent.normalizer.count) == count + 8 * n
-        assert replay.size == 8
+        assert signs[:5] == [1] * 5 and signs.count(1) == 6 and signs[-1] == -1, signs
+        assert float(agent.normalizer.count) == count + 12 * n
+        assert replay.size == 12
     finally:
         acting.close()
 
