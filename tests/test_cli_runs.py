@@ -343,8 +343,9 @@ def test_reuse_shipped_keeps_every_shipped_expert_of_the_same_skill_under_the_se
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
 def test_reuse_takes_a_list_of_libraries(tmp_path):
-    """lowlevel.reuse=[shipped, <forage's library>]: heterogeneous forage keeps the shipped base
-    behaviours and forage's walk-and-turn (its own turn_left), and trains the rest."""
+    """lowlevel.reuse=[<a library>, shipped]: heterogeneous forage keeps that library's expert of
+    its turn_left (the first source holding a skill wins), the shipped base behaviours and the
+    shipped forage library's other walk-and-turn, and trains the rest (the about-faces)."""
     from hvc.config import compose
     from hvc.lowlevel.library import Expert, ExpertLibrary, shipped_library
     from hvc.mocap.clip_sets import entries_of, resolve
@@ -356,10 +357,17 @@ def test_reuse_takes_a_list_of_libraries(tmp_path):
     stand = ExpertLibrary.load(shipped_library()).experts[0]
     turn = Expert({**entries[4].as_dict(), "behaviour": "walk_turn_left"}, stand.policy, stand.reference)
     forage = ExpertLibrary([turn], {"provenance": {"env_steps": [123]}}).save(tmp_path / "experts_forage.npz")
-    cfg = compose(["clips=heterogeneous_forage", f"lowlevel.reuse=[shipped,{forage}]"])
+    cfg = compose(["clips=heterogeneous_forage", f"lowlevel.reuse=[{forage},shipped]"])
     reused = reusable_experts(cfg, entries)
-    assert sorted(reused) == [0, 1, 2, 3, 4]
+    assert sorted(reused) == [0, 1, 2, 3, 4, 5]
     assert reused[4][0].entry["behaviour"] == "turn_left" and reused[4][1] == 123
+    assert reused[5][0].entry["behaviour"] == "turn_right" and reused[5][1] != 123
+    from hvc.errors import HvcUserError
+    from hvc.runtime.inputs import check_inputs
+
+    check_inputs(cfg)  # each library of the list checked before any work, "shipped" skipped
+    with pytest.raises(HvcUserError, match=f"lowlevel.reuse={tmp_path / 'none.npz'} does not exist"):
+        check_inputs(compose(["clips=heterogeneous_forage", f"lowlevel.reuse=[shipped,{forage},{tmp_path / 'none.npz'}]"]))
 
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),

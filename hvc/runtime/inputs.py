@@ -34,8 +34,9 @@ def check_inputs(cfg: DictConfig, resumed: Path | None = None) -> None:
 def _library_options(cfg: DictConfig) -> Iterator[tuple[str, str]]:
     for option in LIBRARY_OPTIONS:
         value = OmegaConf.select(cfg, option)
-        if value and str(value) != "shipped":
-            yield option, str(value)
+        for item in (value if OmegaConf.is_list(value) else [value]):  # lowlevel.reuse takes a list too
+            if item and str(item) != "shipped":
+                yield option, str(item)
     for name, value in (cfg.get("libraries") or {}).items():
         if value:
             yield f"libraries.{name}", str(value)
