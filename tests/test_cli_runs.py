@@ -316,9 +316,9 @@ def test_a_killed_lowlevel_run_saves_every_clip_it_was_training(tmp_path):
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
 def test_reuse_shipped_keeps_every_shipped_expert_of_the_same_skill_under_the_sets_names():
-    """clips=go_to_target_extraneous lowlevel.reuse=shipped: the 4 base behaviours and the two
-    jumps the gaps library has (same clip and range, named jump_tuck_a / jump_in_place there)
-    are kept; the two clips no shipped library has are left to train."""
+    """clips=go_to_target_extraneous reusing the go_to_target and gaps libraries: the 4 base
+    behaviours and the two jumps the gaps library has (same clip and range, named jump_tuck_a /
+    jump_in_place there) are kept; the two clips neither has are left to train."""
     import numpy as np
 
     from hvc.lowlevel.library import SHIPPED_DIR, ExpertLibrary
@@ -329,6 +329,9 @@ def test_reuse_shipped_keeps_every_shipped_expert_of_the_same_skill_under_the_se
 
     cfg = compose(["clips=go_to_target_extraneous", "lowlevel.reuse=shipped"])
     entries = resolve(entries_of(cfg.clips), str(find_mocap_file(None, "2019")))
+    assert len(reusable_experts(cfg, entries)) == 8  # its own library ships too (since 2026-12-04)
+    cfg = compose(["clips=go_to_target_extraneous",
+                   f"lowlevel.reuse=[{SHIPPED_DIR / 'experts_go_to_target.npz'},{SHIPPED_DIR / 'experts_gaps.npz'}]"])
     reused = reusable_experts(cfg, entries)
     assert sorted(reused) == [0, 1, 2, 3, 4, 6]
     assert [reused[i][0].entry["behaviour"] for i in (4, 6)] == ["tuck_jump", "jump_in_place"]

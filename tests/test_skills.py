@@ -23,18 +23,18 @@ def test_scaling_sets_assemble_from_the_shipped_experts(clips, fragments):
 
 
 def test_a_set_without_experts_names_the_missing_clips_and_the_command():
-    """go_to_target_extraneous: two of its clips have no shipped expert; its tuck jump (in the
-    gaps library under another name) and the 4 base behaviours do."""
-    if (SHIPPED_DIR / "experts_go_to_target_extraneous.npz").exists():
+    """locomotion_8: two of its clips have no shipped expert; its turns (in the forage library
+    under other names) and the 4 base behaviours do."""
+    if (SHIPPED_DIR / "experts_locomotion_8.npz").exists():
         pytest.skip("the set's library is shipped now: pick another set without experts")
     with pytest.raises(ControllerUnavailable) as error:
-        resolve_skills(compose(["clips=go_to_target_extraneous", "controller=fragments"]))
+        resolve_skills(compose(["clips=locomotion_8", "controller=fragments"]))
     message = str(error.value)
     assert "\n" not in message
-    assert "clips=go_to_target_extraneous" in message and "CMU_131_03" in message and "CMU_049_03 [96, 192)" in message
-    assert "CMU_131_09" not in message and "CMU_131_07" not in message  # stand, tuck jump: experts exist
-    assert "hvc-run stage=lowlevel clips=go_to_target_extraneous" in message
-    assert "libraries.go_to_target_extraneous=" in message
+    assert "clips=locomotion_8" in message and "CMU_131_14 [0, 42)" in message and "CMU_035_17 [0, 46)" in message
+    assert "CMU_131_09" not in message and "CMU_016_24" not in message  # stand, walk-and-turn: experts exist
+    assert "hvc-run stage=lowlevel clips=locomotion_8" in message
+    assert "libraries.locomotion_8=" in message
 
 
 def test_a_set_assembles_from_a_library_named_for_another_set(tmp_path):
