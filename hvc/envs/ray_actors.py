@@ -25,6 +25,17 @@ def _ray():
     return ray
 
 
+def get_or_fail(futures, close, what: str):
+    """ray.get of `futures`; a Ray failure closes the caller's actors (`close`) and becomes one
+    WorkerError naming `what`, instead of Ray's trace."""
+    ray = _ray()
+    try:
+        return ray.get(futures)
+    except ray.exceptions.RayError as error:
+        close()
+        raise WorkerError(f"{what} failed: {error}") from None
+
+
 def connect(address: str | None = None, num_cpus: int | None = None) -> None:
     """Joins the Ray cluster at `address`, or starts a local one (loopback only) once per process."""
     ray = _ray()
@@ -86,12 +97,7 @@ class RayVectorEnv(BatchedEnvs):
             self._graph = graph.experimental_compile()
 
     def _get(self, futures) -> list:
-        ray = _ray()
-        try:
-            return ray.get(futures)
-        except ray.exceptions.RayError as error:
-            self.close()
-            raise WorkerError(f"a Ray env actor (task={self.task_name}) failed: {error}") from None
+        return get_or_fail(futures, self.close, f"a Ray env actor (task={self.task_name})")
 
     def _call(self, messages: list) -> list:
         if self._graph is not None:

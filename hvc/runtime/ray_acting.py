@@ -17,8 +17,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from hvc.envs.ray_actors import _ray, connect
-from hvc.envs.vector_env import WorkerError
+from hvc.envs.ray_actors import _ray, connect, get_or_fail
 from hvc.runtime.acting import Actor, Collected, random_returns, unrolls_of
 
 
@@ -114,12 +113,7 @@ class RayActing:
         return self
 
     def _get(self, futures):
-        ray = _ray()
-        try:
-            return ray.get(futures)
-        except ray.exceptions.RayError as error:
-            self.close()
-            raise WorkerError(f"a Ray acting actor (task={self.task_name}) failed: {error}") from None
+        return get_or_fail(futures, self.close, f"a Ray acting actor (task={self.task_name})")
 
     def random_returns(self, episodes: int, rng: np.random.Generator) -> list[float]:
         """Random-action episodes spread over the actors (each with its own seeded stream)."""
