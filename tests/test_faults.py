@@ -217,6 +217,24 @@ def test_progress_without_a_terminal_logs_lines_and_a_closing_one(tmp_path):
     assert "hl train finished: env_steps=200/200" in lines[-1]
 
 
+def test_progress_of_a_clip_restarted_from_an_older_checkpoint_counts_from_there(caplog, monkeypatch):
+    """A killed clip worker reported more steps than its last checkpoint held: its speed and eta
+    count from where it restarted, never negative."""
+    from hvc.runtime import progress as progress_module
+
+    now = [0.0]
+    monkeypatch.setattr(progress_module.time, "monotonic", lambda: now[0])
+    bar = progress_module.Progress("run CMU_001", total=1000, done=400, seconds=0)
+    bar.lines = True
+    with caplog.at_level("INFO", logger="hvc.runtime.progress"):
+        now[0] = 10.0
+        bar.update(200)  # restarted from its checkpoint at 200
+        now[0] = 20.0
+        bar.update(300)  # 100 steps in 10 s
+    assert "env_steps=300/1000 steps_per_second=10 " in caplog.messages[-1]
+    assert "eta=1m10s" in caplog.messages[-1]
+
+
 def test_a_typo_in_a_key_gets_a_suggestion_and_leaves_no_run_dir(tmp_path):
     result = _hvc("fragmnt_len=3", cwd=tmp_path, check=2)
     lines = _error_lines(result)

@@ -45,7 +45,12 @@ class Progress:
             self.bar.set_postfix(ret=f"{recent_return:.2f}", refresh=False)
         self.recent_return = self.recent_return if recent_return is None else float(recent_return)
         self.learner_steps = self.learner_steps if learner_steps is None else int(learner_steps)
-        if self.bar is not None:
+        if steps < self.steps:  # a clip worker restarted from a checkpoint older than its last report
+            self.start, self.start_steps = time.monotonic(), int(steps)
+            if self.bar is not None:
+                self.bar.reset(total=self.total)
+                self.bar.update(steps)
+        elif self.bar is not None:
             self.bar.update(steps - self.steps)
         self.steps = int(steps)
         now = time.monotonic()
