@@ -117,3 +117,42 @@ def test_an_expert_trained_with_switch_starts_is_scored_from_both_kinds_of_start
         assert ("eval_switch_completion" in result) == (share > 0) and "eval_completion" in result
         rewards[share] = pd.read_csv(out / "metrics.csv").query("key == 'step_reward'").value.mean()
     assert rewards[1.0] < 0.7 * rewards[0.0]
+
+
+@pytest.mark.parametrize("clips", ["steerable", "switching"])
+def test_the_structured_policies_tasks_start_from_switch_states_on_each_episodes_own_reference(run_env, clips):
+    """The steerable and switching tasks draw a new reference at each reset (rates, a behaviour
+    walk); a switch start is placed on that new reference, not on the previous episode's."""
+    from omegaconf import OmegaConf
+
+    from hvc.envs.fast_env import FastEnv
+    from hvc.lowlevel.switch_starts import collect_switch_states, switch_starts
+    from hvc.mocap.clip_sets import entries_of, resolve
+    from hvc.mocap.source import find_mocap_file
+    from hvc.runtime.env_config import env_dicts
+
+    cfg = compose(["stage=lowlevel", "task=tracking", f"clips={clips}"])
+    entries = resolve(entries_of(cfg.clips), str(find_mocap_file(None, "2019")))
+    task, body, render = env_dicts(cfg, entries[0], tracking=True)
+    if clips == "switching":
+        task["clip"] = {"switching": True, "entries": [e.as_dict() for e in entries],
+                        **OmegaConf.to_container(cfg.clips.switching, resolve=True)}
+    env = FastEnv.build(task, body, render, seed=0, render=False)
+    try:
+        logic = env.layout.logic
+        root = logic.root_qpos
+        logic.switch_states = collect_switch_states(env, run_env[1].experts, 8, 3, np.random.default_rng(2))
+        bank = {tuple(np.round(q[logic.joint_qpos], 9)) for q in logic.switch_states.qpos}
+        references = []
+        with switch_starts(env, 1.0):
+            for _ in range(4):
+                env.reset()
+                t, ref = logic.t, logic.reference
+                references.append(ref.position.copy())
+                assert tuple(np.round(env.data.qpos[logic.joint_qpos], 9)) in bank
+                np.testing.assert_allclose(env.data.qpos[root:root + 2], ref.position[t][:2])
+                turned = _heading(env.data.qpos[root + 3:root + 7]) - _heading(ref.quaternion[t])
+                assert abs(np.angle(np.exp(1j * turned))) < 1e-6
+        assert any(not np.array_equal(references[0], r) for r in references[1:])  # a new reference each time
+    finally:
+        env.close()
