@@ -6,7 +6,8 @@ resets, dm_control composer's on the same task, and the mean reset time of each.
 64x64 camera frames/s on gaps with the default and the fast render settings, and the
 time of one low-level expert's action (numpy float32, hidden 256) against its 30 us goal,
 and for fragments on go_to_target and gaps the actor's env steps/s (env + experts + camera)
-and the V-trace learner's transitions/s at the task's Table A.1 sizes. Last, two envs of the
+and the V-trace learner's transitions/s at the task's Table A.1 sizes (on gaps, with the
+image encoder in float32 and in bfloat16: `image_precision`, their ratio). Last, two envs of the
 rolling ball (end_to_end) and of the humanoid (fragments) stepped by VectorEnv with 0, 1 or 2
 of them in the main process, against twice one env's rate stepped directly (the ceiling of
 two cores; the humanoid's goal is 0.85 with one of them in the main process). Then a short
@@ -162,9 +163,10 @@ def _bench_library(clip_set: str = "go_to_target"):
     return ExpertLibrary(experts, {})
 
 
-def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, float]]:
-    """(actor env steps/s through the fragments controller, {torch threads: learner
-    transitions/s of V-trace})."""
+def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[tuple[int, str], float]]:
+    """(actor env steps/s through the fragments controller, {(torch threads, image precision):
+    learner transitions/s of V-trace}): on vision tasks at one thread and torch_threads=auto's
+    every core, each in both image precisions."""
     import torch
 
     from hvc.agents.network import AgentSpec, HighLevelAgent
@@ -172,6 +174,7 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, floa
     from hvc.controllers.fragments import FragmentsController
     from hvc.algorithms.replay import UnrollReplay
     from hvc.algorithms.vtrace import VTraceLearner
+    from hvc.config import IMAGE_PRECISIONS
     from hvc.runtime.hl_train import unroll_fields
     from hvc.skills import Skills
 
@@ -190,30 +193,32 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[int, floa
     actor_sps = n / (time.perf_counter() - t0)
     agent_cfg = cfg.task.agent
     vision = bool(cfg.task.vision)
-    spec = AgentSpec(env.layout.proprio.size, env.layout.logic.observation_size, controlled.action_space.n, True,
-                     int(agent_cfg.lstm_size), tuple(agent_cfg.value_mlp), vision)
+    sizes = env.layout.proprio.size, env.layout.logic.observation_size, controlled.action_space.n
     env.close()
-    learner = VTraceLearner.from_config(HighLevelAgent(spec), cfg)
+    precisions = IMAGE_PRECISIONS if vision else ("float32",)
+    learners = {}
+    for precision in precisions:
+        spec = AgentSpec(*sizes, True, int(agent_cfg.lstm_size), tuple(agent_cfg.value_mlp), vision, image_precision=precision)
+        learners[precision] = VTraceLearner.from_config(HighLevelAgent(spec), cfg)
     unroll, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
     replay = UnrollReplay(batch * 2, unroll_fields(spec, unroll))
     replay.size = replay.capacity
     replay.arrays["action"][:] = rng.integers(0, spec.action_size, replay.arrays["action"].shape)
     replay.arrays["new_action"][:] = 1.0
-    # the learner at one thread and, on vision tasks, at torch_threads=auto's every core,
-    # in interleaved blocks so that the machine's drift hits both alike
-    thread_counts = sorted({1, int(cfg.torch_threads)})
-    updates, elapsed = dict.fromkeys(thread_counts, 0), dict.fromkeys(thread_counts, 0.0)
+    # interleaved blocks, so that the machine's drift hits every variant alike
+    variants = [(threads, precision) for threads in sorted({1, int(cfg.torch_threads)}) for precision in precisions]
+    updates, elapsed = dict.fromkeys(variants, 0), dict.fromkeys(variants, 0.0)
     blocks = 3
     for _ in range(blocks):
-        for threads in thread_counts:
+        for threads, precision in variants:
             torch.set_num_threads(threads)
             t0 = time.perf_counter()
-            while time.perf_counter() - t0 < seconds / blocks or updates[threads] < 2:
-                learner.update(replay.sample(batch, rng))
-                updates[threads] += 1
-            elapsed[threads] += time.perf_counter() - t0
+            while time.perf_counter() - t0 < seconds / blocks or updates[threads, precision] < 2:
+                learners[precision].update(replay.sample(batch, rng))
+                updates[threads, precision] += 1
+            elapsed[threads, precision] += time.perf_counter() - t0
     torch.set_num_threads(1)
-    return actor_sps, {threads: updates[threads] * batch * unroll / elapsed[threads] for threads in thread_counts}
+    return actor_sps, {v: updates[v] * batch * unroll / elapsed[v] for v in variants}
 
 
 def _interleaved_sps(variants: dict, seconds: float, rng: np.random.Generator, blocks: int = 5) -> dict:
@@ -408,8 +413,15 @@ def main(argv=None) -> None:
                      f"reset_ms={reset_ms:.2f} composer_reset_ms={comp_reset:.1f}")
     for name in ("go_to_target", "gaps") if "hl" in only else ():
         actor, learner = hl_throughput(name, args.seconds)
-        lines.append(f"bench hl task={name} controller=fragments actor_sps={actor:.0f} learner_tps={learner[1]:.0f}"
-                     + "".join(f" learner_tps_{k}_threads={v:.0f}" for k, v in learner.items() if k > 1))
+        lines.append(f"bench hl task={name} controller=fragments actor_sps={actor:.0f} "
+                     f"learner_tps={learner[1, 'float32']:.0f}"
+                     + "".join(f" learner_tps_{k}_threads={v:.0f}" for (k, p), v in learner.items()
+                               if k > 1 and p == "float32"))
+        for threads in sorted({k for k, p in learner if p == "bfloat16"}):
+            lines.append(f"bench image_precision task={name} threads={threads} "
+                         f"float32_tps={learner[threads, 'float32']:.0f} "
+                         f"bfloat16_tps={learner[threads, 'bfloat16']:.0f} "
+                         f"ratio={learner[threads, 'bfloat16'] / learner[threads, 'float32']:.2f}")
     if "expert" in only:
         us = expert_inference_us(256, args.seconds)
         lines.append(f"bench expert_inference hidden=256 us_per_step={us:.1f} goal_us=30 ratio={us / 30:.2f}")

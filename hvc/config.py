@@ -25,6 +25,7 @@ MOCAP_STAGES = ("info", "convert", "playback", "openloop", "lowlevel", "evaluate
 POSITIVE_INTS = ("fragment_len", "total_steps", "log_every", "video_steps", "episodes")
 # Task kinds with an environment on the fast path (tracking arrives with the mocap issue).
 RUNNABLE_TASK_KINDS = ("go_to_target", "corridor", "maze", "tracking")
+IMAGE_PRECISIONS = ("float32", "bfloat16")  # the image encoder's compute (hvc.agents.network.ImageEncoder)
 
 
 class ConfigError(ValueError):
@@ -210,6 +211,8 @@ def validate(cfg: DictConfig) -> None:
                                           or not isinstance(cfg.in_process_envs, int) or cfg.in_process_envs < 0):
         raise ConfigError(f"in_process_envs={cfg.in_process_envs!r} must be an integer from 0 to num_envs, "
                           f"or auto")
+    if cfg.image_precision not in IMAGE_PRECISIONS:
+        raise ConfigError(f"image_precision={cfg.image_precision!r}; allowed: {', '.join(IMAGE_PRECISIONS)}")
     if cfg.stage not in STAGES:
         raise ConfigError(f"unknown stage {cfg.stage!r}; allowed: {', '.join(STAGES)}")
     if cfg.get("actors", "local") not in ("local", "ray"):

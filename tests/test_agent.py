@@ -719,3 +719,43 @@ def test_high_level_svg0_acts_in_float32_which_the_agent_reads_back_as_its_previ
         assert acted.action.dtype == acted.seen.dtype == acted.send.dtype == np.float32
         assert acted.log_mu.shape == (E,) and np.abs(acted.seen).max() <= 0.3
         prev = torch.from_numpy(acted.seen)[None]
+
+
+def test_a_bfloat16_image_encoder_computes_its_convolutions_in_bfloat16_and_learns_like_float32():
+    """image_precision=bfloat16: the ResNet runs under autocast, its weights and gradients stay
+    float32, its features and their gradients agree with float32's to bfloat16's precision."""
+    torch.manual_seed(0)
+    exact, fast = ImageEncoder(), ImageEncoder(precision="bfloat16")
+    fast.load_state_dict(exact.state_dict())
+    conv_outputs = []
+    fast.body[0].register_forward_hook(lambda module, args, out: conv_outputs.append(out.dtype))
+    image = torch.randint(0, 256, (4, 2, 64, 64, 3), dtype=torch.uint8)
+    features = {}
+    for name, encoder in (("exact", exact), ("fast", fast)):
+        features[name] = encoder(image)
+        features[name].square().sum().backward()
+    assert conv_outputs == [torch.bfloat16] and features["fast"].dtype == torch.float32
+    assert not torch.equal(features["fast"], features["exact"])  # it did compute in bfloat16
+    scale = features["exact"].abs().max()
+    assert (features["fast"] - features["exact"]).abs().max() < 0.05 * scale
+    for (name, a), b in zip(exact.named_parameters(), fast.parameters()):
+        assert b.dtype == b.grad.dtype == torch.float32, name
+        cosine = torch.nn.functional.cosine_similarity(a.grad.flatten(), b.grad.flatten(), dim=0)
+        assert cosine > 0.99, (name, float(cosine))
+    with pytest.raises(ValueError, match="allowed: float32, bfloat16"):
+        ImageEncoder(precision="float16")
+
+
+def test_the_configs_image_precision_reaches_the_agent_it_builds():
+    from types import SimpleNamespace
+
+    from hvc.config import ConfigError, compose, validate
+    from hvc.runtime.hl_train import build_agent
+
+    envs = SimpleNamespace(observation_sizes={"proprio": 5, "task": 2, "image": 64 * 64 * 3},
+                           action_space=SimpleNamespace(discrete=True, n=7))
+    for precision in ("float32", "bfloat16"):
+        spec, agent, _ = build_agent(compose(["task=gaps", f"image_precision={precision}"]), envs)
+        assert spec.image_precision == precision and agent.image.autocast == (precision == "bfloat16")
+    with pytest.raises(ConfigError, match="image_precision='half'; allowed: float32, bfloat16"):
+        validate(compose(["image_precision=half"]))

@@ -19,6 +19,11 @@ def test_bench_prints_every_measurement_line():
         assert re.search(rf"bench hl task={task} controller=fragments actor_sps=\d+ learner_tps=\d+", out)
     if len(os.sched_getaffinity(0)) > 1:  # vision: the learner at torch_threads=auto too
         assert re.search(r"bench hl task=gaps .* learner_tps_\d+_threads=\d+", out)
+    for match in re.finditer(r"bench image_precision task=gaps threads=(\d+) float32_tps=(\d+) "
+                             r"bfloat16_tps=(\d+) ratio=([\d.]+)", out):
+        assert abs(int(match[3]) / int(match[2]) - float(match[4])) < 0.02
+    assert len(re.findall(r"bench image_precision task=gaps threads=", out)) == len({1, len(os.sched_getaffinity(0))})
+    assert "image_precision task=go_to_target" not in out  # no camera there
     assert re.search(r"bench expert_inference hidden=256 us_per_step=[\d.]+ goal_us=30", out)
     for body in ("body=rolling_ball controller=end_to_end", "controller=fragments"):
         assert re.search(rf"bench vector_env {body} num_envs=2 ceiling_sps=\d+ in_process=0:sps=\d+,ratio=[\d.]+ "

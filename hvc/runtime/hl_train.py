@@ -100,7 +100,8 @@ def build_agent(cfg: DictConfig, envs: VectorEnv, device: torch.device | str = "
     spec = AgentSpec(proprio_size=envs.observation_sizes["proprio"], task_size=envs.observation_sizes["task"],
                      action_size=space.n if space.discrete else space.size, discrete=space.discrete,
                      lstm_size=int(agent_cfg.lstm_size), value_mlp=tuple(agent_cfg.value_mlp),
-                     vision="image" in envs.observation_sizes, critic_takes_action=not space.discrete)
+                     vision="image" in envs.observation_sizes, critic_takes_action=not space.discrete,
+                     image_precision=str(cfg.image_precision))
     agent = HighLevelAgent(spec).to(device)
     learner_class = get_class(cfg.algorithm._target_)
     controller = None
