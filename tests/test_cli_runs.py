@@ -461,6 +461,36 @@ def test_switching_policy_distils_the_experts_of_its_behaviours(tmp_path):
     assert bad.returncode == 2 and len(lines) == 1 and "lacks experts for behaviours ['CMU_016_43']" in lines[0]
 
 
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
+def test_switching_policy_goes_on_from_a_switching_library_of_the_same_behaviours(tmp_path):
+    """lowlevel.warm_start=<a switching library>: the new policy starts as that policy (no
+    distillation), its critic warming up; a library over other behaviours fails in one line."""
+    import numpy as np
+
+    from hvc.lowlevel.library import ExpertLibrary
+
+    shipped = Path(__file__).resolve().parents[1] / "hvc" / "data" / "experts_switching.npz"
+    tiny = ["lowlevel.min_replay_unrolls=2", "lowlevel.batch_size=2", "lowlevel.eval_episodes=1",
+            "lowlevel.critic_hidden=[16]", "lowlevel.warm_start_critic_steps=1000", "lowlevel.log_every=20"]
+    _run("stage=lowlevel", "clips=switching", f"lowlevel.warm_start={shipped}", "total_steps=40", *tiny,
+         "hydra.run.dir=ll", cwd=tmp_path)
+    [before] = ExpertLibrary.load(shipped).experts
+    [after] = ExpertLibrary.load(tmp_path / "ll" / "experts_switching.npz").experts
+    x = np.random.default_rng(0).normal(size=(5, before.policy.weights[0].shape[0])).astype(np.float32)
+    np.testing.assert_allclose(after.act(x), before.act(x), atol=1e-5)
+    metrics = pd.read_csv(next((tmp_path / "ll" / "experts").glob("*/metrics.csv")))
+    assert not {"distill_mse_after", "bc_mse_after"} & set(metrics.key) and "critic_loss" in set(metrics.key)
+    other = ExpertLibrary.load(shipped)
+    other.meta["switching_entries"] = other.meta["switching_entries"][::-1]
+    other_path = other.save(tmp_path / "reversed.npz")
+    bad = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "clips=switching",
+                          f"lowlevel.warm_start={other_path}", "total_steps=10"], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=600)
+    lines = [line for line in bad.stderr.splitlines() if line.strip() and "][" not in line]
+    assert bad.returncode == 2 and len(lines) == 1 and "is a switching policy over" in lines[0], bad.stderr[-2000:]
+
+
 def test_resume_true_continues_the_newest_run_of_the_same_job(tmp_path):
     import torch
 

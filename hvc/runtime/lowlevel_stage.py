@@ -90,11 +90,20 @@ def warm_start_policies(cfg: DictConfig, entries) -> dict[int, object]:
     same frames of the same clip starts that entry's training (its behaviour, looped length
     and steering may differ): clips=steerable lowlevel.warm_start=shipped starts the
     steerable policy from the run expert, which already runs its gait cycle. For
-    clips=switching, {0: [one expert per behaviour]}, which the switching policy distils."""
+    clips=switching, {0: [one expert per behaviour]}, which the switching policy distils, or
+    from a switching library of the same behaviours, {0: its policy}, which goes on training."""
     source = cfg.lowlevel.get("warm_start")
     if not source:
         return {}
     library = _library(source)
+    if cfg.clips.get("switching") and "switching_entries" in library.meta:
+        mine = [(e.id, e.start, e.end, e.behaviour) for e in entries]
+        theirs = [(e["id"], e.get("start"), e.get("end"), e["behaviour"]) for e in library.meta["switching_entries"]]
+        if mine != theirs:
+            raise ConfigError(f"lowlevel.warm_start={source} is a switching policy over {theirs}, not over "
+                              f"clips={cfg.clips.name}'s behaviours {mine}")
+        log.info("switching policy: goes on from the switching policy of %s (unless it resumes)", source)
+        return {0: library.experts[0].policy}
     frames = lambda e: (e["id"], int(e.get("start") or 0), e.get("end"), bool(e.get("cyclic")))  # noqa: E731
     by_frames: dict[tuple, list] = {}
     for expert in library.experts:
