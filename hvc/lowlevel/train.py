@@ -305,6 +305,9 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     metrics.log(counters["env_steps"], final, learner_steps=learner.steps * batch_size * unroll)
     metrics.close()
     env.close()
+    progress = json.loads((out_dir / "progress.json").read_text()) if (out_dir / "progress.json").exists() else {}
+    (out_dir / "progress.json").write_text(json.dumps({**progress, "env_steps": counters["env_steps"],
+                                                       "total_steps": total_steps, "learner_steps": learner.steps}))
     return final
 
 

@@ -179,15 +179,9 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
                 running.append((entry, out, proc))
             time.sleep(2.0)
             for entry, out, proc in list(running):
-                progress = out / "progress.json"
-                if progress.exists():
-                    try:
-                        done = json.loads(progress.read_text())
-                        bars[str(out)].update(int(done["env_steps"]), done.get("episode_return"),
-                                              done.get("learner_steps"))
-                    except (ValueError, KeyError):
-                        pass
-                if not proc.is_alive():
+                alive = proc.is_alive()  # before reading: a finished worker's last report is read too
+                _report(bars[str(out)], out)
+                if not alive:
                     running.remove((entry, out, proc))
                     if proc.exitcode != 0:
                         failed.append(f"clip {entry.id} ({entry.behaviour}) failed, exit code {proc.exitcode}; "
@@ -213,6 +207,15 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     print(f"library={path}")
     return {"library": str(path), "experts": {f"{e.entry['behaviour']} ({e.entry['id']})": e.scores
                                              for e in library.experts}}  # one clip can give two entries
+
+
+def _report(bar: Progress, out: Path) -> None:
+    """Moves a clip's bar to what its worker last wrote in progress.json."""
+    try:
+        done = json.loads((out / "progress.json").read_text())
+        bar.update(int(done["env_steps"]), done.get("episode_return"), done.get("learner_steps"))
+    except (OSError, ValueError, KeyError):
+        pass
 
 
 def _steps_done(out: Path) -> int:
