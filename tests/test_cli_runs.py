@@ -472,15 +472,17 @@ def test_switching_policy_goes_on_from_a_switching_library_of_the_same_behaviour
 
     shipped = Path(__file__).resolve().parents[1] / "hvc" / "data" / "experts_switching.npz"
     tiny = ["lowlevel.min_replay_unrolls=2", "lowlevel.batch_size=2", "lowlevel.eval_episodes=1",
-            "lowlevel.critic_hidden=[16]", "lowlevel.warm_start_critic_steps=1000", "lowlevel.log_every=20"]
+            "lowlevel.critic_hidden=[16]", "lowlevel.warm_start_critic_steps=1000", "lowlevel.log_every=30"]
     result = _run("stage=lowlevel", "clips=switching", f"lowlevel.warm_start={shipped}", "total_steps=40", *tiny,
                   "hydra.run.dir=ll", cwd=tmp_path)
-    # the closing line counts the worker's last steps, not its last periodic report's (log_every=20)
+    # the closing line counts the worker's last steps, not its last periodic report's
     import torch
 
     [checkpoint] = (tmp_path / "ll" / "experts").glob("*/checkpoint.pt")
     final = torch.load(checkpoint, weights_only=True)["counters"]["env_steps"]
-    assert final % 20 and f"switching switching finished: env_steps={final}/40 " in result.stdout + result.stderr
+    rows = pd.read_csv(checkpoint.parent / "metrics.csv")
+    assert rows.query("key == 'step_reward'").env_steps.max() < final  # reported before its last steps
+    assert f"switching switching finished: env_steps={final}/40 " in result.stdout + result.stderr
     [before] = ExpertLibrary.load(shipped).experts
     [after] = ExpertLibrary.load(tmp_path / "ll" / "experts_switching.npz").experts
     x = np.random.default_rng(0).normal(size=(5, before.policy.weights[0].shape[0])).astype(np.float32)
