@@ -346,9 +346,10 @@ def test_reuse_shipped_keeps_every_shipped_expert_of_the_same_skill_under_the_se
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
 def test_reuse_takes_a_list_of_libraries(tmp_path):
-    """lowlevel.reuse=[<a library>, shipped]: heterogeneous forage keeps that library's expert of
-    its turn_left (the first source holding a skill wins), the shipped base behaviours and the
-    shipped forage library's other walk-and-turn, and trains the rest (the about-faces)."""
+    """lowlevel.reuse=[<a library>, <the shipped go_to_target and forage libraries>]: heterogeneous
+    forage keeps that library's expert of its turn_left (the first source holding a skill wins), the
+    base behaviours and forage's other walk-and-turn, and trains the rest (the about-faces; named
+    libraries, not `shipped`, which holds the about-faces too now)."""
     from hvc.config import compose
     from hvc.lowlevel.library import Expert, ExpertLibrary, shipped_library
     from hvc.mocap.clip_sets import entries_of, resolve
@@ -360,7 +361,9 @@ def test_reuse_takes_a_list_of_libraries(tmp_path):
     stand = ExpertLibrary.load(shipped_library()).experts[0]
     turn = Expert({**entries[4].as_dict(), "behaviour": "walk_turn_left"}, stand.policy, stand.reference)
     forage = ExpertLibrary([turn], {"provenance": {"env_steps": [123]}}).save(tmp_path / "experts_forage.npz")
-    cfg = compose(["clips=heterogeneous_forage", f"lowlevel.reuse=[{forage},shipped]"])
+    data = Path(__file__).resolve().parents[1] / "hvc" / "data"
+    cfg = compose(["clips=heterogeneous_forage", f"lowlevel.reuse=[{forage},{data / 'experts_go_to_target.npz'},"
+                                                 f"{data / 'experts_forage.npz'}]"])
     reused = reusable_experts(cfg, entries)
     assert sorted(reused) == [0, 1, 2, 3, 4, 5]
     assert reused[4][0].entry["behaviour"] == "turn_left" and reused[4][1] == 123
