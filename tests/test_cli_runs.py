@@ -351,7 +351,7 @@ def test_reuse_takes_a_list_of_libraries(tmp_path):
     base behaviours and forage's other walk-and-turn, and trains the rest (the about-faces; named
     libraries, not `shipped`, which holds the about-faces too now)."""
     from hvc.config import compose
-    from hvc.lowlevel.library import Expert, ExpertLibrary, shipped_library
+    from hvc.lowlevel.library import SHIPPED_DIR, Expert, ExpertLibrary, shipped_library
     from hvc.mocap.clip_sets import entries_of, resolve
     from hvc.mocap.source import find_mocap_file
     from hvc.runtime.lowlevel_stage import reusable_experts
@@ -361,9 +361,8 @@ def test_reuse_takes_a_list_of_libraries(tmp_path):
     stand = ExpertLibrary.load(shipped_library()).experts[0]
     turn = Expert({**entries[4].as_dict(), "behaviour": "walk_turn_left"}, stand.policy, stand.reference)
     forage = ExpertLibrary([turn], {"provenance": {"env_steps": [123]}}).save(tmp_path / "experts_forage.npz")
-    data = Path(__file__).resolve().parents[1] / "hvc" / "data"
-    cfg = compose(["clips=heterogeneous_forage", f"lowlevel.reuse=[{forage},{data / 'experts_go_to_target.npz'},"
-                                                 f"{data / 'experts_forage.npz'}]"])
+    cfg = compose(["clips=heterogeneous_forage", f"lowlevel.reuse=[{forage},{SHIPPED_DIR / 'experts_go_to_target.npz'},"
+                                                 f"{SHIPPED_DIR / 'experts_forage.npz'}]"])
     reused = reusable_experts(cfg, entries)
     assert sorted(reused) == [0, 1, 2, 3, 4, 5]
     assert reused[4][0].entry["behaviour"] == "turn_left" and reused[4][1] == 123
@@ -471,9 +470,9 @@ def test_switching_policy_goes_on_from_a_switching_library_of_the_same_behaviour
     distillation), its critic warming up; a library over other behaviours fails in one line."""
     import numpy as np
 
-    from hvc.lowlevel.library import ExpertLibrary
+    from hvc.lowlevel.library import SHIPPED_DIR, ExpertLibrary
 
-    shipped = Path(__file__).resolve().parents[1] / "hvc" / "data" / "experts_switching.npz"
+    shipped = SHIPPED_DIR / "experts_switching.npz"
     tiny = ["lowlevel.min_replay_unrolls=2", "lowlevel.batch_size=2", "lowlevel.eval_episodes=1",
             "lowlevel.critic_hidden=[16]", "lowlevel.warm_start_critic_steps=1000", "lowlevel.log_every=30"]
     result = _run("stage=lowlevel", "clips=switching", f"lowlevel.warm_start={shipped}", "total_steps=40", *tiny,
