@@ -22,19 +22,20 @@ def test_scaling_sets_assemble_from_the_shipped_experts(clips, fragments):
     assert [e.entry["behaviour"] for e in skills.library.experts[:4]] == ["stand", "run", "left_turn", "right_turn"]
 
 
+UNTRAINED = ["clips=go_to_target_x2", "clips.entries=[{id:CMU_131_14,behaviour:stand_c,start:42,end:84}]"]
+
+
 def test_a_set_without_experts_names_the_missing_clips_and_the_command():
-    """locomotion_8: two of its clips have no shipped expert; its turns (in the forage library
-    under other names) and the 4 base behaviours do."""
-    if (SHIPPED_DIR / "experts_locomotion_8.npz").exists():
-        pytest.skip("the set's library is shipped now: pick another set without experts")
+    """A set with a range no library has an expert of (go_to_target_x2 plus CMU_131_14 [42, 84),
+    whatever ships): its 4 base behaviours have experts, the extra range has none."""
     with pytest.raises(ControllerUnavailable) as error:
-        resolve_skills(compose(["clips=locomotion_8", "controller=fragments"]))
+        resolve_skills(compose([*UNTRAINED, "controller=fragments"]))
     message = str(error.value)
     assert "\n" not in message
-    assert "clips=locomotion_8" in message and "CMU_131_14 [0, 42)" in message and "CMU_035_17 [0, 46)" in message
-    assert "CMU_131_09" not in message and "CMU_016_24" not in message  # stand, walk-and-turn: experts exist
-    assert "hvc-run stage=lowlevel clips=locomotion_8" in message
-    assert "libraries.locomotion_8=" in message
+    assert "clips=go_to_target_x2" in message and "CMU_131_14 [42, 84) (stand_c)" in message
+    assert "CMU_131_09" not in message and "CMU_009_06" not in message  # stand and run: experts exist
+    assert "hvc-run stage=lowlevel clips=go_to_target_x2" in message
+    assert "libraries.go_to_target_x2=" in message
 
 
 def test_a_set_assembles_from_a_library_named_for_another_set(tmp_path):
