@@ -198,7 +198,8 @@ def hl_throughput(task_name: str, seconds: float) -> tuple[float, dict[tuple[int
     precisions = IMAGE_PRECISIONS if vision else ("float32",)
     learners = {}
     for precision in precisions:
-        spec = AgentSpec(*sizes, True, int(agent_cfg.lstm_size), tuple(agent_cfg.value_mlp), vision, image_precision=precision)
+        spec = AgentSpec(*sizes, True, int(agent_cfg.lstm_size), tuple(agent_cfg.value_mlp), vision,
+                         image_precision=precision)
         learners[precision] = VTraceLearner.from_config(HighLevelAgent(spec), cfg)
     unroll, batch = int(agent_cfg.unroll), int(cfg.algorithm.batch_size)
     replay = UnrollReplay(batch * 2, unroll_fields(spec, unroll))
