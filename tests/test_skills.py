@@ -39,18 +39,18 @@ def test_a_set_without_experts_names_the_missing_clips_and_the_command():
 
 
 def test_a_set_assembles_from_a_library_named_for_another_set(tmp_path):
-    """locomotion_8's extra clips, trained elsewhere, join the shipped 4 behaviours."""
+    """An extra clip, trained elsewhere and passed as another set's library, joins the shipped
+    go_to_target experts (the untrained set above, whatever ships)."""
     shipped = ExpertLibrary.load(SHIPPED_DIR / "experts_go_to_target.npz")
-    cfg = compose(["clips=locomotion_8"])
     from hvc.mocap.clip_sets import entries_of
 
-    extra = entries_of(cfg.clips)[4:]
+    extra = [e for e in entries_of(compose(UNTRAINED).clips) if e.behaviour == "stand_c"]
     fake = ExpertLibrary([type(shipped.experts[0])(e.as_dict(), shipped.experts[0].policy,
                                                    shipped.experts[0].reference) for e in extra], {})
     path = fake.save(tmp_path / "extra.npz")
-    skills = resolve_skills(compose(["clips=locomotion_8", f"libraries.forage={path}"]))
-    assert len(skills.library) == 8
-    assert skills.assembled_from["stand_b (CMU_131_14)"] == "extra.npz"
+    skills = resolve_skills(compose([*UNTRAINED, f"libraries.forage={path}"]))
+    assert len(skills.library) == 9  # the 4 base experts twice, and the extra clip
+    assert skills.assembled_from["stand_c (CMU_131_14)"] == "extra.npz"
     assert skills.assembled_from["stand (CMU_131_09)"] == "experts_go_to_target.npz"
 
 
