@@ -189,9 +189,14 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
     if named:
         return Skills(controller, set_name, load_library(named), str(named), fragment_len)
     shipped = SHIPPED_DIR / f"experts_{set_name}.npz"
+    own = cfg.controller.get("skills") == "own"
     if shipped.is_file():
-        return Skills(controller, set_name, load_library(shipped), f"shipped {shipped.name}", fragment_len)
-    if cfg.controller.get("skills") == "own":
+        library = load_library(shipped)
+        if own or _holds_entries(library, cfg.clips):
+            return Skills(controller, set_name, library, f"shipped {shipped.name}", fragment_len)
+        log.info("the shipped %s was trained on other entries than clips=%s now lists; assembling the set's "
+                 "experts instead", shipped.name, set_name)
+    if own:
         raise ControllerUnavailable(
             f"controller={controller} needs the {controller} low-level policy and none is shipped: train it with "
             f"`hvc-run stage=lowlevel clips={controller}`, then pass libraries.{controller}=<run dir>/"
@@ -212,6 +217,14 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
     assembled_from = {f"{e.behaviour} ({e.id})": where for e, where in zip(entries, found)}
     return Skills(controller, set_name, library,
                   f"assembled from {', '.join(sorted(set(found)))}", fragment_len, assembled_from)
+
+
+def _holds_entries(library, clips_cfg) -> bool:
+    """Whether a library's experts are the set's entries, in order: a `clips.entries=` override
+    must not be served the experts the set shipped with."""
+    from hvc.mocap.clip_sets import entries_of
+
+    return [skill_key(e.entry) for e in library.experts] == [skill_key(e.as_dict()) for e in entries_of(clips_cfg)]
 
 
 def _fragment_len(cfg: DictConfig) -> int | None:

@@ -38,6 +38,19 @@ def test_a_set_without_experts_names_the_missing_clips_and_the_command():
     assert "libraries.go_to_target_x2=" in message
 
 
+def test_entries_overridden_on_a_set_with_a_shipped_library_get_their_own_experts():
+    """`clips.entries=` on go_to_target must not be served the 4 shipped experts: the two
+    entries kept get their experts (34 + 36 fragments); a range no library has is refused."""
+    kept = ("clips.entries=[{id:CMU_131_09,behaviour:stand,start:0,end:102},"
+            "{id:CMU_009_06,behaviour:run,start:0,end:38,cyclic:true,steps:108}]")
+    skills = resolve_skills(compose(["clips=go_to_target", kept]))
+    assert [e.entry["id"] for e in skills.library.experts] == ["CMU_131_09", "CMU_009_06"]
+    assert len(skills.fragments) == 34 + 36 and skills.source.startswith("assembled")
+    with pytest.raises(ControllerUnavailable, match=r"CMU_131_14 \[42, 84\)"):
+        resolve_skills(compose(["clips=go_to_target",
+                                "clips.entries=[{id:CMU_131_14,behaviour:stand_c,start:42,end:84}]"]))
+
+
 def test_a_set_assembles_from_a_library_named_for_another_set(tmp_path):
     """An extra clip, trained elsewhere and passed as another set's library, joins the shipped
     go_to_target experts (the untrained set above, whatever ships)."""
