@@ -126,6 +126,7 @@ def test_the_structured_policies_tasks_start_from_switch_states_on_each_episodes
     from omegaconf import OmegaConf
 
     from hvc.envs.fast_env import FastEnv
+    from hvc.envs.switching_tracking import switching_clip
     from hvc.lowlevel.switch_starts import collect_switch_states, switch_starts
     from hvc.mocap.clip_sets import entries_of, resolve
     from hvc.mocap.source import find_mocap_file
@@ -135,8 +136,7 @@ def test_the_structured_policies_tasks_start_from_switch_states_on_each_episodes
     entries = resolve(entries_of(cfg.clips), str(find_mocap_file(None, "2019")))
     task, body, render = env_dicts(cfg, entries[0], tracking=True)
     if clips == "switching":
-        task["clip"] = {"switching": True, "entries": [e.as_dict() for e in entries],
-                        **OmegaConf.to_container(cfg.clips.switching, resolve=True)}
+        task["clip"] = switching_clip(entries, OmegaConf.to_container(cfg.clips.switching, resolve=True))
     env = FastEnv.build(task, body, render, seed=0, render=False)
     try:
         logic = env.layout.logic

@@ -80,6 +80,7 @@ def switching_env():
     from conftest import plain_cfg
     from hvc.config import compose
     from hvc.envs.fast_env import FastEnv
+    from hvc.envs.switching_tracking import switching_clip
     from hvc.mocap.clip_sets import entries_of, resolve
     from hvc.mocap.source import find_mocap_file
 
@@ -87,8 +88,8 @@ def switching_env():
     overrides = ("stage=lowlevel", "task=tracking", "clips=switching")
     cfg = compose(list(overrides))
     task, body, render = plain_cfg(*overrides)
-    task.update(clip={"switching": True, "entries": [e.as_dict() for e in resolve(entries_of(cfg.clips), mocap)],
-                      **OmegaConf.to_container(cfg.clips.switching, resolve=True)}, mocap_file=mocap)
+    task.update(clip=switching_clip(resolve(entries_of(cfg.clips), mocap),
+                                    OmegaConf.to_container(cfg.clips.switching, resolve=True)), mocap_file=mocap)
     env = FastEnv.build(task, body, render, seed=0)
     yield env
     env.close()

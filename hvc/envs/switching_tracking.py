@@ -16,6 +16,16 @@ from hvc.mocap.reference import build_reference
 from hvc.mocap.switching import MAX_ACCEL, markov_reference
 
 
+def switching_clip(entries, spec, behaviours=None) -> dict:
+    """The tracking task's `clip` for switching walks: the behaviours' clip entries (dicts or
+    ClipEntry) and the walk's spec (graph, steps, ...), with the behaviours' references when
+    they are at hand (a library's); otherwise they are built from the task's mocap file."""
+    clip = {"switching": True, "entries": [e if isinstance(e, dict) else e.as_dict() for e in entries], **spec}
+    if behaviours:
+        clip["behaviours"] = behaviours
+    return clip
+
+
 class SwitchingTrackingLogic(TrackingLogic):
     reference_per_episode = True
     def __init__(self, cfg, env):

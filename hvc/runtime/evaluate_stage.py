@@ -33,15 +33,14 @@ def expert_env(cfg: DictConfig, expert, library: ExpertLibrary):
 
     task, body, render = env_dicts(cfg, ClipEntry(**expert.entry), tracking=True, with_mocap=False)
     if expert.entry["id"] == "switching":
+        from hvc.envs.switching_tracking import switching_clip
         from hvc.mocap.source import find_mocap_file
 
         if "switching" not in library.meta:
             raise HvcUserError("this switching library does not record its transition graph (meta 'switching'); "
                              "reassemble it with `hvc-run stage=lowlevel clips=switching resume=<run dir>`")
-        task["clip"] = {"switching": True, "entries": library.meta["switching_entries"], **library.meta["switching"]}
-        if library.behaviours:
-            task["clip"]["behaviours"] = library.behaviours
-        else:
+        task["clip"] = switching_clip(library.meta["switching_entries"], library.meta["switching"], library.behaviours)
+        if not library.behaviours:
             task["mocap_file"] = str(find_mocap_file(cfg.mocap_file, str(cfg.body.get("model_version", "2019"))))
     else:
         task["reference"] = expert.reference

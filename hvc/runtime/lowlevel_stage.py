@@ -20,6 +20,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from hvc.config import ConfigError, group_config
+from hvc.envs.switching_tracking import switching_clip
 from hvc.errors import HvcUserError
 from hvc.mocap.clip_sets import entries_of, resolve
 from hvc.mocap.source import find_mocap_file
@@ -145,7 +146,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         out = expert_dir(run_dir, 0, combined)
         out.mkdir(parents=True, exist_ok=True)
         task, body, render = env_dicts(cfg, entries[0], tracking=True)
-        task["clip"] = {"switching": True, "entries": [e.as_dict() for e in entries], **spec}
+        task["clip"] = switching_clip(entries, spec)
         if not (out / "result.json").exists():
             jobs.append((combined, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed),
                                          os.getpid(), warm.get(0))))
