@@ -277,6 +277,45 @@ def test_expert_training_resumes_from_its_checkpoint(tmp_path, privileged):
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
+def test_a_packed_expert_run_continues_elsewhere_with_its_replay_refilled(tmp_path):
+    """hvc.io.pack: the checkpoint travels without its replay; unpacked in another dir, the
+    expert continues from its counters and weights, refills its replay, and learns on."""
+    import tarfile
+
+    import pandas as pd
+    from omegaconf import OmegaConf
+
+    from hvc.config import compose
+    from hvc.io.pack import pack_run
+    from hvc.lowlevel.train import train_expert
+    from hvc.runtime.env_config import env_dicts
+
+    cfg = compose(["stage=lowlevel", "task=tracking", "clip=left_turn", "lowlevel.bc_steps=20",
+                   "lowlevel.bc_rollouts=2", "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=1",
+                   "lowlevel.log_every=100", "lowlevel.batch_size=4"])
+    task, body, render = env_dicts(cfg)
+    ll = OmegaConf.to_container(cfg.lowlevel)
+    expert = tmp_path / "run" / "experts" / "0_left_turn"
+    train_expert(task, body, render, ll, expert, total_steps=200)
+    (tmp_path / "run" / ".lock").write_text("1")
+    packed = pack_run(tmp_path / "run", tmp_path / "run.tar.gz")
+    assert packed["checkpoints_without_replay"] == 1
+    with tarfile.open(tmp_path / "run.tar.gz") as tar:
+        assert not [n for n in tar.getnames() if n.endswith(".lock")]
+        tar.extractall(tmp_path / "moved", filter="data")
+    moved = tmp_path / "moved" / "run" / "experts" / "0_left_turn"
+    before = torch.load(moved / "checkpoint.pt", weights_only=True)
+    assert "replay" not in before and before["counters"]["env_steps"] >= 200
+    train_expert(task, body, render, ll, moved, total_steps=400)
+    after = torch.load(moved / "checkpoint.pt", weights_only=True)
+    assert 400 <= after["counters"]["env_steps"] < 410 and after["learner"]["steps"] > before["learner"]["steps"]
+    assert after["replay"]["obs"].shape[0] > 0
+    metrics = pd.read_csv(moved / "metrics.csv")
+    assert (metrics.key == "bc_mse_after").sum() == 1  # no pre-training again: the weights went on
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
 def test_final_evaluation_scores_by_contact_whatever_termination_trained(tmp_path):
     import pandas as pd
     from omegaconf import OmegaConf

@@ -10,7 +10,7 @@
 Everything needed to continue lives in `checkpoint.pt` (weights, optimisers, replay,
 counters, RNG states; loadable with torch.load(weights_only=True)), written atomically
 every `checkpoint_seconds` and at the end; a run restarted on the same directory
-resumes. A non-finite loss stops the run with a clear message, keeping the last
+resumes (without the replay when it was packed to move machines: it refills). A non-finite loss stops the run with a clear message, keeping the last
 good checkpoint.
 """
 from __future__ import annotations
@@ -188,7 +188,8 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     metrics, _ = continue_metrics(out_dir / "metrics.csv", state, tensorboard=True)  # no row twice after a kill
     if state is not None:
         learner.load_state_dict(state["learner"])
-        replay.load_state_dict(state["replay"])
+        if "replay" in state:  # not in a packed run (hvc.io.pack): the replay refills
+            replay.load_state_dict(state["replay"])
         counters.update({k: int(v) for k, v in state["counters"].items()})
         restore_random_states(state, {"rng": rng, "env_rng": env.rng})
     elif warm_start is not None:
