@@ -10,8 +10,8 @@
 Everything needed to continue lives in `checkpoint.pt` (weights, optimisers, replay,
 counters, RNG states; loadable with torch.load(weights_only=True)), written atomically
 every `checkpoint_seconds` and at the end; a run restarted on the same directory
-resumes (without the replay when it was packed to move machines: it refills). A non-finite loss stops the run with a clear message, keeping the last
-good checkpoint.
+resumes (without the replay when it was packed to move machines: it refills). A
+non-finite loss stops the run with a clear message, keeping the last good checkpoint.
 """
 from __future__ import annotations
 
