@@ -3,6 +3,9 @@
 # WORKERS at a time. A job whose dir has summary.json is done; one with checkpoint.pt (or, for
 # stage=lowlevel, experts/) is continued with resume=<dir>; otherwise it starts in <dir>. Each job holds flock on
 # <dir>.lock, so two queues never run the same job (the lock dies with its process).
+# On a new machine: DONE=<dir> skips jobs exported there (<DONE>/<job name>/summary.json, as
+# analysis/export_runs.py writes them); PARTIAL=<dir> first unpacks <PARTIAL>/<job name>.tar.gz
+# (python -m hvc.io.pack) of a job this machine has no dir for, so it resumes.
 #   nohup docs/results/evidence/queue.sh docs/results/evidence/<figure>.jobs > outputs/evidence/<figure>.log 2>&1 &
 set -uo pipefail
 jobs_file=$1
@@ -11,7 +14,11 @@ HVC=${HVC:-.venv/bin/hvc-run}
 
 run_job() {
   local dir=$1; shift
-  if [[ -f $dir/summary.json ]]; then return 0; fi
+  local name=${dir##*/}
+  if [[ -f $dir/summary.json || ( -n ${DONE:-} && -f $DONE/$name/summary.json ) ]]; then return 0; fi
+  if [[ ! -e $dir && -n ${PARTIAL:-} && -f $PARTIAL/$name.tar.gz ]]; then
+    tar xzf "$PARTIAL/$name.tar.gz" -C "$(dirname "$dir")"
+  fi
   if [[ -f $dir/checkpoint.pt || -d $dir/experts ]]; then
     flock -n "$dir.lock" "$HVC" "resume=$dir" "$@"
   else
