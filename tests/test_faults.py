@@ -1,6 +1,7 @@
 """Runs and sweeps that survive faults: hard kills, failing sweep jobs, two writers, bad
 files, a full disk, budgets, progress without a terminal. Tiny budgets, as a user runs them."""
 import errno
+import json
 import fcntl
 import signal
 import subprocess
@@ -233,6 +234,25 @@ def test_progress_of_a_clip_restarted_from_an_older_checkpoint_counts_from_there
         bar.update(300)  # 100 steps in 10 s
     assert "env_steps=300/1000 steps_per_second=10 " in caplog.messages[-1]
     assert "eta=1m10s" in caplog.messages[-1]
+
+
+def test_progress_of_a_clip_that_waited_for_a_worker_counts_from_its_start(caplog, monkeypatch, tmp_path):
+    """lowlevel.workers=1: every clip's bar exists from the stage's start, but the second clip's
+    speed and eta count from when its worker started, not from the wait before it."""
+    from hvc.runtime import lowlevel_stage
+    from hvc.runtime import progress as progress_module
+
+    now = [0.0]
+    monkeypatch.setattr(progress_module.time, "monotonic", lambda: now[0])
+    bar = progress_module.Progress("left_turn CMU_016_41", total=1000, seconds=0)
+    bar.lines = True
+    now[0] = 3600.0  # an hour queued behind the first clip
+    bar.restart()
+    (tmp_path / "progress.json").write_text(json.dumps({"env_steps": 500}))
+    now[0] = 3610.0
+    with caplog.at_level("INFO", logger="hvc.runtime.progress"):
+        lowlevel_stage._report(bar, tmp_path)
+    assert caplog.messages[-1].endswith("env_steps=500/1000 steps_per_second=50 eta=0m10s")
 
 
 def test_a_typo_in_a_key_gets_a_suggestion_and_leaves_no_run_dir(tmp_path):

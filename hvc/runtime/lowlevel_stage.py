@@ -177,6 +177,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
                 entry, out, args = pending.pop(0)
                 proc = ctx.Process(target=_train_worker, args=args, name=f"hvc-expert-{entry.id}")
                 proc.start()
+                bars[str(out)].restart()
                 running.append((entry, out, proc))
             time.sleep(2.0)
             for entry, out, proc in list(running):

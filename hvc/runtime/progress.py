@@ -39,6 +39,11 @@ class Progress:
                          mininterval=2.0) if sys.stderr.isatty() else None)
         self.lines = not (sys.stdout.isatty() and sys.stderr.isatty())  # a stream that a bar does not reach
 
+    def restart(self) -> None:
+        """The clock starts now: a clip that waited for a free worker counts its speed, eta and
+        elapsed time from when its worker started, not from when the stage did."""
+        self.start, self.start_steps = time.monotonic(), self.steps
+
     def update(self, steps: int, recent_return: float | None = None, learner_steps: int | None = None) -> None:
         """`steps`: the env steps done so far; the others when known (kept until the next)."""
         if recent_return is not None and recent_return != self.recent_return and self.bar is not None:
