@@ -222,9 +222,12 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
 def _holds_entries(library, clips_cfg) -> bool:
     """Whether a library's experts are the set's entries, in order: a `clips.entries=` override
     must not be served the experts the set shipped with."""
+    from hvc.config import expand_clip_set
     from hvc.mocap.clip_sets import entries_of
 
-    return [skill_key(e.entry) for e in library.experts] == [skill_key(e.as_dict()) for e in entries_of(clips_cfg)]
+    clips = OmegaConf.create(OmegaConf.to_container(clips_cfg, resolve=True))  # a saved config may be unexpanded
+    expand_clip_set(clips)
+    return [skill_key(e.entry) for e in library.experts] == [skill_key(e.as_dict()) for e in entries_of(clips)]
 
 
 def _fragment_len(cfg: DictConfig) -> int | None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import os
 import tarfile
 from pathlib import Path
 
@@ -23,17 +24,29 @@ SKIPPED_SUFFIXES = (".lock", ".tmp")  # another process's lock; a checkpoint bei
 
 def pack_run(run_dir: Path, out: Path) -> dict[str, int]:
     """Writes `out`; returns how many checkpoints lost their replay and the bytes packed."""
-    run_dir, out = Path(run_dir), Path(out)
+    run_dir, out = Path(run_dir).resolve(), Path(out)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run dir {run_dir} does not exist")
+    tmp = out.with_name(out.name + ".tmp")  # a failed pack never replaces a good one
+    try:
+        stripped = _write(run_dir, tmp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    os.replace(tmp, out)
+    return {"checkpoints_without_replay": stripped, "bytes": out.stat().st_size}
+
+
+def _write(run_dir: Path, out: Path) -> int:
+    """The tar of `run_dir`, its checkpoints without replay; how many had one."""
     stripped = 0
     with tarfile.open(out, "w:gz") as tar:
         for path in sorted(run_dir.rglob("*")):
-            if path.is_dir() or path.name.endswith(SKIPPED_SUFFIXES) or path.name == ".lock":
+            if path.is_dir() or path.name.endswith(SKIPPED_SUFFIXES):
                 continue
             name = str(Path(run_dir.name) / path.relative_to(run_dir))
             if path.name == "checkpoint.pt":
-                state = torch.load(path, weights_only=True)
+                state = torch.load(path, map_location="cpu", weights_only=True)
                 if state.pop("replay", None) is not None:
                     buffer = io.BytesIO()
                     torch.save(state, buffer)
@@ -44,7 +57,7 @@ def pack_run(run_dir: Path, out: Path) -> dict[str, int]:
                     stripped += 1
                     continue
             tar.add(path, name, recursive=False)
-    return {"checkpoints_without_replay": stripped, "bytes": out.stat().st_size}
+    return stripped
 
 
 def main(argv: list[str] | None = None) -> None:
