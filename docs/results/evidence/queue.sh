@@ -17,7 +17,14 @@ run_job() {
   local name=${dir##*/}
   if [[ -f $dir/summary.json || ( -n ${DONE:-} && -f $DONE/$name/summary.json ) ]]; then return 0; fi
   if [[ ! -e $dir && -n ${PARTIAL:-} && -f $PARTIAL/$name.tar.gz ]]; then
-    tar xzf "$PARTIAL/$name.tar.gz" -C "$(dirname "$dir")"
+    local tmp  # unpacked aside, then moved in whole: a failed or concurrent unpack leaves no half dir
+    tmp=$(mktemp -d "$(dirname "$dir")/.unpack.XXXXXX")
+    if tar xzf "$PARTIAL/$name.tar.gz" -C "$tmp" && [[ -d $tmp/$name ]]; then
+      mv -T "$tmp/$name" "$dir" 2>/dev/null || echo "$(date -Is) $dir appeared while unpacking; kept it"
+    else
+      echo "$(date -Is) could not unpack $PARTIAL/$name.tar.gz (no $name/ inside?); $dir starts fresh"
+    fi
+    rm -rf "$tmp"
   fi
   if [[ -f $dir/checkpoint.pt || -d $dir/experts ]]; then
     flock -n "$dir.lock" "$HVC" "resume=$dir" "$@"
