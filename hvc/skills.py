@@ -190,9 +190,10 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
         return Skills(controller, set_name, load_library(named), str(named), fragment_len)
     shipped = SHIPPED_DIR / f"experts_{set_name}.npz"
     own = cfg.controller.get("skills") == "own"
+    entries = None if own else _set_entries(cfg.clips)
     if shipped.is_file():
         library = load_library(shipped)
-        if own or _holds_entries(library, cfg.clips):
+        if own or _holds_entries(library, entries):
             return Skills(controller, set_name, library, f"shipped {shipped.name}", fragment_len)
         log.info("the shipped %s was trained on other entries than clips=%s now lists; assembling the set's "
                  "experts instead", shipped.name, set_name)
@@ -201,9 +202,6 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
             f"controller={controller} needs the {controller} low-level policy and none is shipped: train it with "
             f"`hvc-run stage=lowlevel clips={controller}`, then pass libraries.{controller}=<run dir>/"
             f"experts_{controller}.npz")
-    from hvc.mocap.clip_sets import entries_of
-
-    entries = entries_of(cfg.clips)
     sources = _expert_sources(cfg, set_name)
     library, found = assemble(entries, sources)
     missing = [e for e, where in zip(entries, found) if where is None]
@@ -219,15 +217,20 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
                   f"assembled from {', '.join(sorted(set(found)))}", fragment_len, assembled_from)
 
 
-def _holds_entries(library, clips_cfg) -> bool:
-    """Whether a library's experts are the set's entries, in order: a `clips.entries=` override
-    must not be served the experts the set shipped with."""
+def _set_entries(clips_cfg) -> list:
+    """The set's entries, from an expanded copy of its config (a saved config may not be)."""
     from hvc.config import expand_clip_set
     from hvc.mocap.clip_sets import entries_of
 
-    clips = OmegaConf.create(OmegaConf.to_container(clips_cfg, resolve=True))  # a saved config may be unexpanded
+    clips = OmegaConf.create(OmegaConf.to_container(clips_cfg, resolve=True))
     expand_clip_set(clips)
-    return [skill_key(e.entry) for e in library.experts] == [skill_key(e.as_dict()) for e in entries_of(clips)]
+    return entries_of(clips)
+
+
+def _holds_entries(library, entries) -> bool:
+    """Whether a library's experts are the set's entries, in order: a `clips.entries=` override
+    must not be served the experts the set shipped with."""
+    return [skill_key(e.entry) for e in library.experts] == [skill_key(e.as_dict()) for e in entries]
 
 
 def _fragment_len(cfg: DictConfig) -> int | None:
