@@ -51,6 +51,22 @@ def test_entries_overridden_on_a_set_with_a_shipped_library_get_their_own_expert
                                 "clips.entries=[{id:CMU_131_14,behaviour:stand_c,start:42,end:84}]"]))
 
 
+def test_evaluate_scores_the_experts_of_the_entries_it_is_given():
+    """stage=evaluate without library= scores the set's skills as a job resolves them: the
+    shipped four for go_to_target, the two kept entries' experts for an override of it."""
+    from hvc.runtime.evaluate_stage import evaluated_library
+
+    library, source = evaluated_library(compose(["stage=evaluate", "clips=go_to_target"]))
+    assert len(library) == 4 and source == "shipped experts_go_to_target.npz"
+    kept = ("clips.entries=[{id:CMU_131_09,behaviour:stand,start:0,end:102},"
+            "{id:CMU_009_06,behaviour:run,start:0,end:38,cyclic:true,steps:108}]")
+    library, source = evaluated_library(compose(["stage=evaluate", "clips=go_to_target", kept]))
+    assert [e.entry["id"] for e in library.experts] == ["CMU_131_09", "CMU_009_06"]
+    assert source.startswith("assembled")
+    library, _ = evaluated_library(compose(["stage=evaluate", "clips=steerable"]))
+    assert library.experts[0].entry.get("steer")
+
+
 def test_a_set_assembles_from_a_library_named_for_another_set(tmp_path):
     """An extra clip, trained elsewhere and passed as another set's library, joins the shipped
     go_to_target experts (the untrained set above, whatever ships)."""

@@ -18,7 +18,7 @@ from omegaconf import DictConfig
 from hvc.errors import HvcUserError
 from hvc.io.metrics import MetricsLogger
 from hvc.lowlevel.evaluation import evaluate, evaluate_open_loop, steering_response, switching_transitions
-from hvc.lowlevel.library import ExpertLibrary, policy_observation, shipped_library
+from hvc.lowlevel.library import ExpertLibrary, policy_observation
 from hvc.runtime.env_config import env_dicts
 
 
@@ -78,14 +78,28 @@ def structured_scores(cfg: DictConfig, env, expert, act, metrics: MetricsLogger)
     return {}
 
 
-def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
-    path = Path(cfg.library) if cfg.get("library") else shipped_library(str(cfg.clips.name))
-    if path.is_dir():  # a stage=lowlevel run dir, finished or still training
-        from hvc.runtime.lowlevel_stage import library_from_run
+def evaluated_library(cfg: DictConfig) -> tuple[ExpertLibrary, str]:
+    """(library, where from): `library=` (a file, or a stage=lowlevel run dir finished or still
+    training), else the set's skills as a job would resolve them (hvc.skills): the shipped
+    library only when its experts are the set's entries, so a `clips.entries=` override is
+    not scored on the experts the set shipped with."""
+    if cfg.get("library"):
+        path = Path(cfg.library)
+        if path.is_dir():
+            from hvc.runtime.lowlevel_stage import library_from_run
 
-        library = library_from_run(path, cfg.get("mocap_file"))
-    else:
-        library = ExpertLibrary.load(path)
+            return library_from_run(path, cfg.get("mocap_file")), str(path)
+        return ExpertLibrary.load(path), str(path)
+    from hvc.runtime.composability import composability_config
+    from hvc.skills import OWN_POLICY, resolve_skills
+
+    name = str(cfg.clips.name)
+    skills = resolve_skills(composability_config(cfg, name if name in OWN_POLICY else "fragments"))
+    return skills.library, skills.source
+
+
+def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
+    library, path = evaluated_library(cfg)
     print(f"library={path} experts={len(library)} episodes={cfg.episodes}")
     results = {}
     with MetricsLogger(run_dir / "metrics.csv") as metrics:
@@ -107,7 +121,7 @@ def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
                 record_expert_video(env, expert, run_dir / f"expert_{expert.entry['behaviour']}_{clip}.mp4")
             env.close()
         composed = composability(cfg, metrics)
-    return {"library": str(path), "clips": results, **({"composability": composed} if composed else {})}
+    return {"library": path, "clips": results, **({"composability": composed} if composed else {})}
 
 
 def composability(cfg: DictConfig, metrics: MetricsLogger) -> dict | None:
