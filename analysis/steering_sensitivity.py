@@ -41,6 +41,9 @@ def sensitivity(run_dir: Path, states: int = 2000) -> dict:
     action_size = policy.net[-1].out_features
     critic = QNetwork(critic_weights["normalizer.mean"].shape[0], action_size, cfg.lowlevel.critic_hidden)
     critic.load_state_dict(critic_weights)
+    if "replay" not in state:
+        raise SystemExit(f"{expert} holds no replay (a run packed by hvc.io.pack): resume the run for a few "
+                         f"thousand env steps to refill it, then measure")
     obs = state["replay"]["obs"][:states, 0].clone()
     rate_column = policy.obs_size - 1  # the steerable policy's last input (SteerableTrackingLogic.observation)
     tracking = cfg.task if cfg.task.kind == "tracking" else group_config("task", "tracking")  # as training built it

@@ -1,6 +1,8 @@
 """`hvc-run` end to end on tiny budgets, as a user runs it."""
+import shutil
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 
 import pandas as pd
@@ -440,6 +442,15 @@ def test_steerable_policy_warm_starts_from_the_run_expert(tmp_path):
     result = sensitivity(tmp_path / "ll", states=50)
     assert result["rate"] == 1.5 and result["action_change"].shape == (56,)
     assert result["mean_abs_action_change"] < 1e-6 and result["mean_abs_grad"] > 0
+    # a packed run has no replay to draw states from: one line saying how to get it back
+    from hvc.io.pack import pack_run
+
+    pack_run(tmp_path / "ll", tmp_path / "ll.tar.gz")
+    shutil.rmtree(tmp_path / "ll")
+    with tarfile.open(tmp_path / "ll.tar.gz") as tar:
+        tar.extractall(tmp_path / "moved", filter="data")
+    with pytest.raises(SystemExit, match="holds no replay.*resume the run"):
+        sensitivity(tmp_path / "moved" / "ll", states=50)
 
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
