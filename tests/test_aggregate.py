@@ -65,6 +65,26 @@ def test_load_runs_gives_each_run_its_swept_values_and_status(sweep):
     assert set(frame.key.dropna()) == {"random_return", "episodes", "episode_return", "loss"}
 
 
+def test_an_arm_that_kept_the_default_gets_its_configs_value(tmp_path):
+    """A comparison against a default (library=<file> against the shipped library, a swept
+    key the baseline never set) has two arms, not one arm and a gap."""
+    make_run(tmp_path, "shipped_s0", {"seed": 0}, lambda t: 1.0)
+    make_run(tmp_path, "new_s0", {"seed": 0, "library": "new.npz", "lowlevel.sigma": 0.2}, lambda t: 2.0)
+    config = tmp_path / "shipped_s0" / "config_resolved.yaml"
+    cfg = yaml.safe_load(config.read_text())
+    config.write_text(yaml.safe_dump({**cfg, "library": None, "lowlevel": {"sigma": 0.1}}))
+    runs = load_runs([tmp_path]).groupby("run").first()
+    assert runs.loc[str(tmp_path / "shipped_s0"), "library"] == "default"
+    assert runs.loc[str(tmp_path / "shipped_s0"), "lowlevel.sigma"] == 0.1
+    assert runs.loc[str(tmp_path / "new_s0"), "library"] == "new.npz"
+    frame = load_runs([tmp_path])
+    assert sorted(frame.attrs["factors"]) == ["library", "lowlevel.sigma"]  # with gaps, neither was one
+    table = iqm_table(final_scores(frame), ["library", "lowlevel.sigma"])
+    assert sorted(zip(table.library, table["lowlevel.sigma"], table.iqm)) == [("default", 0.1, 1.0), ("new.npz", 0.2, 2.0)]
+    with pytest.raises(ValueError, match="lowlevel.sigma"):  # the two arms differ in sigma too
+        curves(frame, ["library"])
+
+
 def test_curves_average_seeds_with_standard_errors(sweep):
     c = curves(load_runs([sweep]), ["fragment_len"], x="env_steps", points=10)
     one = c[c.fragment_len == 1]

@@ -3,7 +3,9 @@ one row per metrics row, with the run, its status and its options as columns.
 
 A run's options are the `key=value` options it ran with (overrides.yaml), plus the core
 choices its resolved config holds whether or not they were given (controller, task, clips,
-body, seed, fragment_len), so that runs of different sweeps line up.
+body, seed, fragment_len), so that runs of different sweeps line up. An option some runs gave
+and others did not takes, for the others, the value their resolved config holds (`default`
+where that is null): an arm that kept the default is an arm of the comparison, not a gap.
 """
 from __future__ import annotations
 
@@ -114,6 +116,7 @@ def load_runs(paths: Iterable[str | Path], keys: Iterable[str] | None = None) ->
         frames.append(metrics)
     if not frames:
         raise FileNotFoundError(f"no runs under {', '.join(map(str, paths))}")
+    _fill_defaults(options)
     table = pd.DataFrame.from_dict(options, orient="index")
     frame = pd.concat(frames, ignore_index=True)
     frame = frame.join(table, on="run")
@@ -122,6 +125,27 @@ def load_runs(paths: Iterable[str | Path], keys: Iterable[str] | None = None) ->
     frame.attrs["factors"] = [c for c in table.columns
                               if c not in EXECUTION and table[c].dropna().astype(str).nunique() > 1]
     return frame
+
+
+def _fill_defaults(options: dict[str, dict]) -> None:
+    """An option missing from some runs, from each such run's resolved config (see the module
+    docstring); a run without a resolved config (failed before writing one) keeps the gap."""
+    keys = {k for given in options.values() for k in given} - EXECUTION
+    for run, given in options.items():
+        missing = keys - given.keys()
+        config = Path(run) / "config_resolved.yaml"
+        if not missing or not config.is_file():
+            continue
+        cfg = yaml.safe_load(config.read_text()) or {}
+        for key in missing:
+            node, found = cfg, True
+            for part in key.split("."):
+                if not isinstance(node, dict) or part not in node:
+                    found = False
+                    break
+                node = node[part]
+            if found:
+                given[key] = "default" if node is None else node
 
 
 def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
