@@ -40,3 +40,15 @@ def test_a_notebook_takes_its_data_dir_as_a_parameter(tmp_path):
              if "text/plain" in o.get("data", {})]
     tables = [t for t in texts if "iqm" in t]
     assert len(tables) == 1 and "7.5" in tables[0] and "2.5" in tables[0]   # IQM of 7, 8 and of 2, 3
+
+
+def test_fragment_choices_draw_the_go_to_target_record_too(tmp_path):
+    """Fig. A.5 / A.6 default to the vision agent's record; the go_to_target record draws with
+    record_dir=, its Fig. A.6 episode chosen as a walk into the target zone (not a spawn in it)."""
+    nb = _execute(ANALYSIS / "figA5_A6_fragment_choices.ipynb", tmp_path / "out.ipynb",
+                  record_dir="docs/results/fig_a5_a6/record")
+    assert _images(nb) == 2
+    text = "".join("".join(o.get("text", "")) for c in nb["cells"] for o in c.get("outputs", []))
+    assert "218 episodes" in text
+    [line] = [t for t in text.splitlines() if t.startswith("Fig. A.6: episode")]
+    assert float(line.split("return ")[1].split(",")[0]) < 1001  # a spawn at the target returns 1001
