@@ -85,6 +85,29 @@ def test_an_arm_that_kept_the_default_gets_its_configs_value(tmp_path):
         curves(frame, ["library"])
 
 
+def test_factor_levels_come_from_each_runs_config_whatever_was_typed(tmp_path):
+    """`1e-3` typed is the 0.001 another run kept; a section given by name is its name; a key
+    one run deleted is `absent`, not a gap that would average two arms; execution options
+    (device, ray.*) never split arms."""
+    for name, options, config in [
+            ("typed", {"seed": 0, "lowlevel.bc_lr": "1e-3", "device": "cpu", "ray.address": "h:1"},
+             {"lowlevel": {"bc_lr": 0.001, "sigma": 0.1}, "render": {"name": "fast"}}),
+            ("kept", {"seed": 1, "render": "default"},
+             {"lowlevel": {"bc_lr": 0.001, "sigma": 0.1}, "render": {"name": "default"}}),
+            ("deleted", {"seed": 2, "~lowlevel.sigma": ""},
+             {"lowlevel": {"bc_lr": 0.001}, "render": {"name": "fast"}})]:
+        run = make_run(tmp_path, name, options, lambda t: 1.0)
+        path = run / "config_resolved.yaml"
+        path.write_text(yaml.safe_dump({**yaml.safe_load(path.read_text()), **config}))
+    frame = load_runs([tmp_path])
+    runs = frame.groupby("run").first()
+    assert set(runs["lowlevel.bc_lr"]) == {0.001}
+    assert runs["render"].to_dict() == {str(tmp_path / n): v for n, v in
+                                        (("typed", "fast"), ("kept", "default"), ("deleted", "fast"))}
+    assert runs.loc[str(tmp_path / "deleted"), "lowlevel.sigma"] == "absent"
+    assert sorted(frame.attrs["factors"]) == ["lowlevel.sigma", "render", "seed"]
+
+
 def test_curves_average_seeds_with_standard_errors(sweep):
     c = curves(load_runs([sweep]), ["fragment_len"], x="env_steps", points=10)
     one = c[c.fragment_len == 1]

@@ -310,8 +310,9 @@ def test_a_packed_expert_run_continues_elsewhere_with_its_replay_refilled(tmp_pa
     train_expert(task, body, render, ll, moved, total_steps=400)
     after = torch.load(moved / "checkpoint.pt", weights_only=True)
     assert 400 <= after["counters"]["env_steps"] < 410 and after["learner"]["steps"] > before["learner"]["steps"]
-    # the replay restarted empty and refilled from the second 200 steps only (kept, it would hold both)
-    assert 0 < int(after["replay"]["size"]) <= filled + 1 < 2 * filled
+    # the replay restarted empty and refilled from the second 200 steps only (kept, it would hold
+    # both: about twice; falls pad unrolls, so the second part's count varies a little)
+    assert 0 < int(after["replay"]["size"]) < 1.5 * filled
     metrics = pd.read_csv(moved / "metrics.csv")
     assert (metrics.key == "bc_mse_after").sum() == 1  # no pre-training again: the weights went on
 

@@ -3,13 +3,14 @@ one row per metrics row, with the run, its status and its options as columns.
 
 A run's options are the `key=value` options it ran with (overrides.yaml), plus the core
 choices its resolved config holds whether or not they were given (controller, task, clips,
-body, seed, fragment_len), so that runs of different sweeps line up. An option some runs gave
-and others did not takes, for the others, the value their resolved config holds (`default`
-where that is null): an arm that kept the default is an arm of the comparison, not a gap.
+body, seed, fragment_len), so that runs of different sweeps line up. The options any run gave
+are read, for every run, from its resolved config (`default` where null): an arm that kept the
+default is an arm of the comparison, not a gap, and `1e-3` given equals `0.001` kept.
 """
 from __future__ import annotations
 
 import fcntl
+import json
 from pathlib import Path
 from typing import Iterable
 
@@ -21,8 +22,11 @@ METRICS_FILES = ("metrics.csv", "metrics.csv.gz")
 CORE = {"controller": ("controller", "name"), "task": ("task", "name"), "clips": ("clips", "name"),
         "body": ("body", "name"), "seed": ("seed",), "fragment_len": ("fragment_len",)}
 # Options that say how a run was executed, not what was run: never a factor of a figure.
+# (a key, or any key under it: `ray` covers `ray.address`)
 EXECUTION = {"stage", "num_envs", "in_process_envs", "torch_threads", "resume", "total_steps", "budget",
-             "log_every", "video", "record_episodes"}
+             "log_every", "video", "video_steps", "record_episodes", "device", "actors", "ray", "mocap_file",
+             "progress_seconds", "hl.checkpoint_seconds", "lowlevel.workers", "lowlevel.log_every",
+             "lowlevel.checkpoint_seconds"}
 STATUSES = ("finished", "running", "stopped", "failed")
 
 
@@ -123,29 +127,50 @@ def load_runs(paths: Iterable[str | Path], keys: Iterable[str] | None = None) ->
     columns = ["run", "status", *table.columns, "env_steps", "learner_steps", "wall_time", "key", "value"]
     frame = frame[[c for c in columns if c in frame.columns]]
     frame.attrs["factors"] = [c for c in table.columns
-                              if c not in EXECUTION and table[c].dropna().astype(str).nunique() > 1]
+                              if not is_execution(c) and table[c].dropna().astype(str).nunique() > 1]
     return frame
 
 
+def is_execution(key: str) -> bool:
+    return any(key == e or key.startswith(e + ".") for e in EXECUTION)
+
+
 def _fill_defaults(options: dict[str, dict]) -> None:
-    """An option missing from some runs, from each such run's resolved config (see the module
-    docstring); a run without a resolved config (failed before writing one) keeps the gap."""
-    keys = {k for given in options.values() for k in given} - EXECUTION
+    """The options some runs gave, for every run, as its resolved config holds them (Hydra's
+    parse, the same for a given and a default value): `default` where null, `absent` where
+    neither the config nor the run has it (a `~key` deletion, a `+key` another run added); a
+    section or list as one string. A run without a resolved config (failed before writing one)
+    keeps what it gave."""
+    keys = {k for given in options.values() for k in given if not is_execution(k)} - set(CORE)
     for run, given in options.items():
-        missing = keys - given.keys()
         config = Path(run) / "config_resolved.yaml"
-        if not missing or not config.is_file():
+        if not config.is_file():
+            given.update({k: _factor_value(v) for k, v in given.items() if isinstance(v, (dict, list))})
             continue
         cfg = yaml.safe_load(config.read_text()) or {}
-        for key in missing:
-            node, found = cfg, True
+        for key in keys:
+            node = cfg
             for part in key.split("."):
-                if not isinstance(node, dict) or part not in node:
-                    found = False
-                    break
-                node = node[part]
-            if found:
-                given[key] = "default" if node is None else node
+                node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
+            if node is _ABSENT and given.get(key) is not None:  # given, but not a config key (a hand-made run)
+                node = given[key]
+            given[key] = _factor_value(node)
+
+
+_ABSENT = object()
+
+
+def _factor_value(value):
+    """A config value as one hashable factor level."""
+    if value is _ABSENT:
+        return "absent"
+    if value is None:
+        return "default"
+    if isinstance(value, dict):
+        return value["name"] if isinstance(value.get("name"), str) else json.dumps(value, sort_keys=True)
+    if isinstance(value, list):
+        return json.dumps(value, sort_keys=True)
+    return value
 
 
 def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
