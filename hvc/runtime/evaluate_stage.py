@@ -91,10 +91,10 @@ def evaluated_library(cfg: DictConfig) -> tuple[ExpertLibrary, str]:
             return library_from_run(path, cfg.get("mocap_file")), str(path)
         return ExpertLibrary.load(path), str(path)
     from hvc.runtime.composability import composability_config
-    from hvc.skills import OWN_POLICY, resolve_skills
+    from hvc.skills import OWN_POLICY, skills_for_job
 
-    name = str(cfg.clips.name)
-    skills = resolve_skills(composability_config(cfg, name if name in OWN_POLICY else "fragments"))
+    name = str(cfg.clips.name)  # resolved once: the composability measure below drives the same skills
+    skills = skills_for_job(composability_config(cfg, name if name in OWN_POLICY else "fragments"))
     return skills.library, skills.source
 
 
