@@ -66,10 +66,8 @@ def run_options(run: Path) -> dict:
     if config.is_file():
         cfg = yaml.safe_load(config.read_text()) or {}
         for key, where in CORE.items():
-            node = cfg
-            for part in where:
-                node = node.get(part) if isinstance(node, dict) else None
-            if node is not None:
+            node = _lookup(cfg, where)
+            if node is not _ABSENT and node is not None:
                 options[key] = node
     overrides = run / "overrides.yaml"
     given = yaml.safe_load(overrides.read_text()) if overrides.is_file() else []
@@ -149,15 +147,21 @@ def _fill_defaults(options: dict[str, dict]) -> None:
             continue
         cfg = yaml.safe_load(config.read_text()) or {}
         for key in keys:
-            node = cfg
-            for part in key.split("."):
-                node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
+            node = _lookup(cfg, key.split("."))
             if node is _ABSENT and given.get(key) is not None:  # given, but not a config key (a hand-made run)
                 node = given[key]
             given[key] = _factor_value(node)
 
 
 _ABSENT = object()
+
+
+def _lookup(cfg: dict, parts) -> object:
+    """The value at a key path of a loaded config, or _ABSENT."""
+    node = cfg
+    for part in parts:
+        node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
+    return node
 
 
 def _factor_value(value):
