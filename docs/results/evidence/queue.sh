@@ -26,12 +26,15 @@ run_job() {
     fi
     rm -rf "$tmp"
   fi
-  if [[ -f $dir/checkpoint.pt || -d $dir/experts ]]; then
-    flock -n "$dir.lock" "$HVC" "resume=$dir" "$@"
+  local start=hydra.run.dir rc
+  [[ -f $dir/checkpoint.pt || -d $dir/experts ]] && start=resume
+  flock -n -E 75 "$dir.lock" "$HVC" "$start=$dir" "$@"
+  rc=$?  # read before the echo: its $(date) would set $? to 0
+  if (( rc == 75 )); then
+    echo "$(date -Is) job $dir skipped: another queue runs it"
   else
-    flock -n "$dir.lock" "$HVC" "hydra.run.dir=$dir" "$@"
+    echo "$(date -Is) job $dir exit $rc"
   fi
-  echo "$(date -Is) job $dir exit $?"
 }
 
 worker() {
