@@ -203,3 +203,27 @@ def test_turn_rate_repeat_holds_rates_across_cycles(repeat):
     kept = np.mean(draws[:, 1:] == draws[:, :-1])
     assert kept == pytest.approx(repeat, abs=0.03)  # uniform draws never repeat exactly by chance
     assert np.std(draws[:, 0]) == pytest.approx(3 / np.sqrt(12), abs=0.1)  # the first cycle is uniform
+
+
+def test_steering_response_holds_each_rate_from_distinct_starts_in_the_first_cycle():
+    """The mean action from one start would replay one episode per rate (falls only 0 or 1)."""
+    from hvc.lowlevel.evaluation import steering_response
+
+    env, logic, _ = _straight_under_a_left_turn()
+    logic.held_rate = None
+    settings = (logic.cycles, logic.random_start, logic.start_window)
+    starts, lengths = [], []
+
+    def act(obs, episode_logic):
+        if episode_logic.t == episode_logic.start:  # an episode's first step
+            starts.append(episode_logic.start)
+            lengths.append(episode_logic.reference.num_steps)
+        return np.zeros(env.action_size, np.float32)
+
+    rows = steering_response(env, act, [0.5], episodes_per_rate=4, cycles=2)
+    env.close()
+    L = logic.cycle.num_steps
+    assert len(starts) == 4 and len(set(starts)) > 1 and all(0 <= s < L for s in starts)
+    assert set(lengths) == {3 * L}  # a cycle to start in, then the 2 held ones
+    assert rows[0]["commanded_rate"] == 0.5 and 0.0 <= rows[0]["fall_rate"] <= 1.0
+    assert (logic.cycles, logic.random_start, logic.start_window, logic.held_rate) == (*settings, None)

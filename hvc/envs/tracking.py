@@ -101,6 +101,7 @@ class TrackingLogic(TaskLogic):
             cfg["clip"], cfg["mocap_file"], int(cfg.get("cycle_repeats", 4)), int(cfg.get("cycle_blend", 4)))
         self.reward_fn = TrackingReward(cfg["reward"])
         self.random_start = bool(cfg.get("random_start", True))
+        self.start_window: int | None = None  # random starts among the first this many steps (None: all)
         threshold = cfg.get("termination_error")  # checked with the config (hvc.config.validate)
         self.termination_error = None if threshold is None else float(threshold)
         heading = cfg.get("heading_termination")
@@ -151,6 +152,8 @@ class TrackingLogic(TaskLogic):
     # -- TaskLogic -------------------------------------------------------------------
     def reset(self, model, data, rng):
         last = self.reference.num_steps - 1
+        if self.start_window is not None:
+            last = min(last, self.start_window)
         self.t = int(rng.integers(0, last)) if self.random_start else 0
         self.start = self.t
         if self.switch_states is not None and rng.random() < self.switch_probability:

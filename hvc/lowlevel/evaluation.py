@@ -64,19 +64,20 @@ def steering_response(env: FastEnv, act: Callable[[dict, object], np.ndarray], r
                       cycles: int = 8, settle_steps: int = 10) -> list[dict[str, float]]:
     """Commanded vs achieved turning rate of the steerable policy (Sec. 2.2 evaluation).
 
-    Each episode starts at the steered reference's first step and holds the commanded rate
-    for all `cycles` gait cycles; the achieved rate is the slope of the body's unwrapped
-    heading after `settle_steps` (a linear fit spans the gait's own sway). Episodes too
-    short after settling (early falls) give no rate but still count for completion.
+    Each episode starts at a random step of the steered reference's first gait cycle (the
+    mean action from one start would repeat one episode) and holds the commanded rate for
+    `cycles` more; the achieved rate is the slope of the body's unwrapped heading after
+    `settle_steps` (a linear fit spans the gait's own sway). Episodes too short after
+    settling (early falls) give no rate but still count for completion and falls.
     """
     from hvc.mocap.clips import root_heading
 
     logics = [layout.logic for layout in env.layouts]
-    saved = [(logic.cycles, logic.random_start) for logic in logics]
+    saved = [(logic.cycles, logic.random_start, logic.start_window) for logic in logics]
     rows = []
     try:
         for logic in logics:
-            logic.cycles, logic.random_start = int(cycles), False
+            logic.cycles, logic.random_start, logic.start_window = int(cycles) + 1, True, logic.cycle.num_steps
         for rate in rates:
             for logic in logics:
                 logic.held_rate = float(rate)
@@ -99,8 +100,8 @@ def steering_response(env: FastEnv, act: Callable[[dict, object], np.ndarray], r
                          "achieved_rate": float(np.mean(achieved)) if achieved else float("nan"),
                          "completion": float(np.mean(completion)), "fall_rate": float(np.mean(fell))})
     finally:
-        for logic, (n, random_start) in zip(logics, saved):
-            logic.held_rate, logic.cycles, logic.random_start = None, n, random_start
+        for logic, (n, random_start, window) in zip(logics, saved):
+            logic.held_rate, logic.cycles, logic.random_start, logic.start_window = None, n, random_start, window
     return rows
 
 
