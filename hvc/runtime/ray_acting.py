@@ -100,7 +100,9 @@ class RayActing:
         self._actors = [host.remote(plain_cfg, task, body, render, seed + i, shared_drive,
                                     str(run_dir) if record and i == 0 else None)  # env 0 records, as locally
                         for i in range(self.num_envs)]
-        facts = self._get(self._actors[0].get_facts.remote())
+        # every actor built before acting starts: one still importing would deliver its first
+        # unroll only after the others' tenth, and a failing one should stop the run here
+        facts = self._get([a.get_facts.remote() for a in self._actors])[0]
         self.observation_sizes, self.action_space = facts["observation_sizes"], facts["action_space"]
         self.controller, self.why_no_controller = facts["controller"], facts["why_not"]
         self.agent = None
