@@ -130,6 +130,8 @@ def _hvc_run(*args, cwd):
     (["num_envs=2", "in_process_envs=3"], "in_process_envs=3 exceeds num_envs=2"),
     (["stage=lowlevel", "task=tracking", "task.termination_error=-0.1"], "task.termination_error=-0.1 must be"),
     (["stage=lowlevel", "task=tracking", "task.heading_termination=0"], "task.heading_termination=0 must be"),
+    (["stage=lowlevel", "lowlevel.cut_ins=1.5"], "lowlevel.cut_ins=1.5 must be a probability from 0 to 1"),
+    (["stage=lowlevel", "lowlevel.switch_starts=true"], "lowlevel.switch_starts=True must be a probability"),
     (["controller=fragments", "clips=go_to_target_x2", "clips.entries=[{id:CMU_131_14,behaviour:stand_c,start:42,end:84}]",
       "library=null", "num_envs=1"], "stage=lowlevel clips=go_to_target_x2"),
     # typed keys (hvc/schema.py): Hydra's own message, the key and the type it wants

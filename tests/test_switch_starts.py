@@ -44,7 +44,7 @@ def test_switch_states_stay_up_and_are_placed_at_the_references_place_and_headin
     ref = logic.reference
     logic.switch_states = states
     for i, t in [(0, 5), (7, 20), (29, ref.num_steps - 2)]:
-        logic.place_switch_state(env.data, i, t)
+        logic.place_state(env.data, states[i], t)
         mujoco.mj_forward(env.model, env.data)
         qpos, qvel = env.data.qpos, env.data.qvel
         np.testing.assert_allclose(qpos[root:root + 2], ref.position[t][:2])
@@ -88,6 +88,43 @@ def test_resets_start_from_switch_states_at_the_configured_share(run_env):
         assert logic.switch_probability == 0.0  # restored after the block
     finally:
         logic.switch_states = None
+
+
+def test_a_cut_in_starts_the_next_episode_where_another_skills_fragment_left_the_body(run_env):
+    """The fragment played from where the body is, then one new episode from its end (placed at
+    a random step of the reference); later resets start from the reference again."""
+    import copy
+
+    import mujoco
+
+    from hvc.lowlevel.switch_starts import cut_in, play_fragment
+
+    env, library = run_env
+    logic, root = env.layout.logic, env.layout.logic.root_qpos
+    env.reset()
+    for _ in range(5):
+        env.step(logic.pose_to_actuation(logic.reference.joints[logic.t + 1]))
+    spec = mujoco.mjtState.mjSTATE_INTEGRATION
+    saved = np.empty(mujoco.mj_stateSize(env.model, spec))
+    mujoco.mj_getState(env.model, env.data, saved, spec)
+    rng = np.random.default_rng(4)
+    assert not play_fragment(env, library.experts, 3, copy.deepcopy(rng))
+    expected = logic.heading_free_state(env.data)
+    mujoco.mj_setState(env.model, env.data, saved, spec)
+    mujoco.mj_forward(env.model, env.data)
+    obs = cut_in(env, library.experts, 3, rng)
+    t, ref = logic.t, logic.reference
+    assert obs is not None and logic.next_start is None
+    np.testing.assert_allclose(env.data.qpos[logic.joint_qpos], expected[0][logic.joint_qpos])
+    np.testing.assert_allclose(env.data.qpos[root:root + 2], ref.position[t][:2])
+    assert abs(np.angle(np.exp(1j * (_heading(env.data.qpos[root + 3:root + 7]) - _heading(ref.quaternion[t]))))) < 1e-6
+    np.testing.assert_allclose(obs["task"], ref.phase[t:t + 1])
+    env.reset()
+    np.testing.assert_allclose(env.data.qpos[logic.joint_qpos], logic.reference.joints[logic.t])
+
+    env.data.qpos[root + 2] = 0.05  # the body in the ground: the fragment falls at once
+    mujoco.mj_forward(env.model, env.data)
+    assert cut_in(env, library.experts, 3, rng) is None
 
 
 def test_an_expert_trained_with_switch_starts_is_scored_from_both_kinds_of_start(tmp_path):
@@ -156,3 +193,34 @@ def test_the_structured_policies_tasks_start_from_switch_states_on_each_episodes
         assert any(not np.array_equal(references[0], r) for r in references[1:])  # a new reference each time
     finally:
         env.close()
+
+
+def test_an_expert_trained_with_cut_ins_hands_over_at_its_fragment_ends(tmp_path):
+    """With cut_ins=1 every fragment of the expert's own ends in a cut-in unless its episode
+    ended: about one per 3 env steps; they are logged with the share whose fragment fell, and
+    the expert is scored from switch states too. Without cut-ins none are logged."""
+    import pandas as pd
+    from omegaconf import OmegaConf
+
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+    from hvc.lowlevel.train import train_expert
+    from hvc.runtime.env_config import env_dicts
+
+    stand = ExpertLibrary.load(shipped_library()).experts[0]
+    rows = {}
+    for share in (0.0, 1.0):
+        cfg = compose(["stage=lowlevel", "task=tracking", "clip=stand", "lowlevel.bc_steps=20",
+                       "lowlevel.bc_rollouts=2", "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=3",
+                       "lowlevel.log_every=60", "lowlevel.batch_size=4", f"lowlevel.cut_ins={share}",
+                       "lowlevel.switch_states=20", "lowlevel.warm_start_critic_steps=1000"])
+        task, body, render = env_dicts(cfg)
+        out = tmp_path / str(share)
+        result = train_expert(task, body, render, OmegaConf.to_container(cfg.lowlevel), out, total_steps=180,
+                              warm_start=stand.policy)
+        assert ("eval_switch_completion" in result) == (share > 0)
+        rows[share] = pd.read_csv(out / "metrics.csv")
+    assert "cut_ins" not in set(rows[0.0].key)
+    cuts = rows[1.0].query("key == 'cut_ins'").value
+    falls = rows[1.0].query("key == 'cut_in_falls'").value
+    assert len(cuts) == 3 and (cuts > 0.6 * 60 / 3).all() and (cuts <= 60 / 3).all()
+    assert ((falls >= 0) & (falls <= 1)).all()

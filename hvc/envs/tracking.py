@@ -8,7 +8,8 @@ touches the ground (and, with `termination_error`, when the pose strays from the
 reference; with `heading_termination`, when the heading does), and ends at the clip's end.
 With `switch_states` set (hvc.lowlevel.switch_starts), a share `switch_probability` of the
 episodes starts instead from a state other skills' fragments left the body in, placed at the
-reference's place and heading: what a fragment of this clip meets after a cold switch.
+reference's place and heading: what a fragment of this clip meets after a cold switch; with
+`next_start` set (a cut-in), the next episode starts from that one state so.
 """
 from __future__ import annotations
 
@@ -68,6 +69,9 @@ class SwitchStates:
     def __len__(self) -> int:
         return len(self.qpos)
 
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.qpos[i], self.qvel[i], self.act[i]
+
 
 class TrackingLogic(TaskLogic):
     observation_size = 1
@@ -116,6 +120,7 @@ class TrackingLogic(TaskLogic):
         self.reanchor = bool(cfg.get("reanchor", True))
         self.switch_states: SwitchStates | None = None  # set by the expert trainer (switch starts)
         self.switch_probability = 0.0
+        self.next_start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # set by a cut-in, one reset
 
     # -- pose bookkeeping ------------------------------------------------------------
     def pose_to_actuation(self, joints: np.ndarray) -> np.ndarray:
@@ -156,8 +161,10 @@ class TrackingLogic(TaskLogic):
             last = min(last, self.start_window)
         self.t = int(rng.integers(0, last)) if self.random_start else 0
         self.start = self.t
-        if self.switch_states is not None and rng.random() < self.switch_probability:
-            self.place_switch_state(data, int(rng.integers(len(self.switch_states))), self.t)
+        if self.next_start is not None:
+            self.place_state(data, self.next_start, self.t)
+        elif self.switch_states is not None and rng.random() < self.switch_probability:
+            self.place_state(data, self.switch_states[int(rng.integers(len(self.switch_states)))], self.t)
         else:
             self.set_reference_state(data, self.t)
         self.failure = False
@@ -172,16 +179,17 @@ class TrackingLogic(TaskLogic):
         qvel[dof:dof + 3] = rot_z(-heading) @ qvel[dof:dof + 3]  # the free joint's angular velocity is local
         return qpos, qvel, data.act.copy()
 
-    def place_switch_state(self, data, i: int, t: int) -> None:
-        """Switch state i at the reference's place and heading at step t (its own height)."""
-        s, root, dof = self.switch_states, self.root_qpos, self.root_dof
+    def place_state(self, data, state: tuple[np.ndarray, np.ndarray, np.ndarray], t: int) -> None:
+        """A heading-free (qpos, qvel, act) at the reference's place and heading at step t (its
+        own height)."""
+        (qpos, qvel, act), root, dof = state, self.root_qpos, self.root_dof
         heading = float(root_heading(self.reference.quaternion[t:t + 1])[0])
-        data.qpos[:], data.qvel[:] = s.qpos[i], s.qvel[i]
+        data.qpos[:], data.qvel[:] = qpos, qvel
         data.qpos[root:root + 2] = self.reference.position[t][:2]
-        data.qpos[root + 3:root + 7] = yaw_rotate(s.qpos[i][None, root + 3:root + 7], heading)[0]
-        data.qvel[dof:dof + 3] = rot_z(heading) @ s.qvel[i][dof:dof + 3]
+        data.qpos[root + 3:root + 7] = yaw_rotate(qpos[None, root + 3:root + 7], heading)[0]
+        data.qvel[dof:dof + 3] = rot_z(heading) @ qvel[dof:dof + 3]
         if self.has_act:
-            data.act[:] = s.act[i]
+            data.act[:] = act
 
     def anchor(self, data, t: int) -> None:
         """Turns and moves the reference from step t on so that it starts from the body's

@@ -38,7 +38,7 @@ from hvc.io.checkpoint import random_states, restore_random_states, save_checkpo
 from hvc.io.metrics import continue_metrics
 from hvc.lowlevel.evaluation import evaluate
 from hvc.lowlevel.library import policy_observation
-from hvc.lowlevel.switch_starts import switch_starts, switch_states_for
+from hvc.lowlevel.switch_starts import cut_in, switch_library, switch_starts, switch_states_for
 
 
 def reference_dataset(env: FastEnv, walks: int = 10) -> tuple[np.ndarray, np.ndarray]:
@@ -165,8 +165,10 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     torch.set_num_threads(1)
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
+    cut_rng = np.random.default_rng([seed, 29])  # cut-ins' own stream: without them, runs draw as before
     torch.manual_seed(seed)
     env = FastEnv.build(task, body, render, seed=seed, render=False)
+    streams = {"rng": rng, "env_rng": env.rng, "cut_rng": cut_rng}
     logic = env.layout.logic
     obs_size = env.layout.proprio.size + logic.observation_size
     privileged = bool(cfg.get("critic_sees_reference", False))
@@ -191,7 +193,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         if "replay" in state:  # not in a packed run (hvc.io.pack): the replay refills
             replay.load_state_dict(state["replay"])
         counters.update({k: int(v) for k, v in state["counters"].items()})
-        restore_random_states(state, {"rng": rng, "env_rng": env.rng})
+        restore_random_states(state, {k: g for k, g in streams.items() if k in state})  # older: no cut_rng
     elif warm_start is not None:
         if isinstance(warm_start, NumpyPolicy):
             ref_obs, _ = reference_dataset(env)
@@ -221,30 +223,35 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
 
     def save() -> None:
         save_checkpoint({"learner": learner.state_dict(), "replay": replay.state_dict(), "counters": counters,
-                         **random_states({"rng": rng, "env_rng": env.rng}), "metrics": metrics.mark()}, checkpoint)
+                         **random_states(streams), "metrics": metrics.mark()}, checkpoint)
 
     if state is None:
         save()  # behaviour cloning done: a kill from here on loses at most one interval
 
-    switching = float(cfg.get("switch_starts", 0.0))
-    if switching > 0:  # after pre-training, which learns from the reference's own states
-        states = switch_states_for(env, cfg, seed)
+    switching, cutting = float(cfg.get("switch_starts", 0.0)), float(cfg.get("cut_ins", 0.0))
+    fragment_len = int(cfg.get("switch_fragment_len", 3))
+    cutters = None
+    if switching > 0 or cutting > 0:  # after pre-training, which learns from the reference's own states
+        library = switch_library(cfg)
+        states = switch_states_for(env, library.experts, cfg, seed)  # scored from at the end either way
         for layout in env.layouts:
             layout.logic.switch_states, layout.logic.switch_probability = states, switching
+        cutters = library.experts if cutting > 0 else None
     actor = NumpyPolicy.from_torch(policy)
     pacer = Pacer(cfg["updates_per_unroll"])
     unroll, batch_size = int(cfg["unroll"]), int(cfg["batch_size"])
     log_every, last_log = int(cfg["log_every"]), counters["env_steps"]
     last_save, start, start_steps = time.monotonic(), time.perf_counter(), counters["env_steps"]
     returns, completions, step_rewards, losses = [], [], [], []
-    obs = env.reset()
+    cuts, cut_falls = 0, 0
+    obs, segment = env.reset(), 0  # segment: steps since this episode's start (cut-ins come at fragment ends)
     stop = StopRequest()
     while counters["env_steps"] < total_steps:
         if stop.requested:  # SIGTERM between unrolls: keep every step taken so far
             save()
             raise SystemExit(f"stopped at env step {counters['env_steps']}; checkpoint saved in {checkpoint}")
         seq_obs, seq_act, seq_rew, seq_disc, seq_logmu = [stored(obs)], [], [], [], []
-        done = False
+        done = cut = False
         for _ in range(unroll):
             action, log_mu = learner.act(actor(seq_obs[-1][:obs_size]), rng)
             obs, reward, discount, done = env.step(action)
@@ -255,14 +262,24 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
             seq_logmu.append(log_mu)
             step_rewards.append(reward)
             counters["env_steps"] += 1
+            segment += 1
             if done:
                 returns.append(env.episode_return)
                 completions.append(logic.completion)
                 counters["episodes"] += 1
                 break
+            if cutters and segment % fragment_len == 0 and cut_rng.random() < cutting:
+                cut = True  # the unroll ends here, not failed: its last step bootstraps from obs
+                break
         replay.add(**pad_unroll(unroll, seq_obs, seq_act, seq_rew, seq_disc, seq_logmu))
         if done:
-            obs = env.reset()
+            obs, segment = env.reset(), 0
+        elif cut:
+            obs, segment = cut_in(env, cutters, fragment_len, cut_rng), 0
+            cuts += 1
+            if obs is None:  # the other skill's fragment fell: not this expert's episode to learn from
+                cut_falls += 1
+                obs = env.reset()
         if replay.size >= int(cfg["min_replay_unrolls"]):
             for _ in range(pacer.owed(1)):
                 try:
@@ -283,10 +300,13 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
                 row.update(episode_return=float(np.mean(returns)), completion=float(np.mean(completions)))
             if losses:
                 row.update({k: float(np.mean([l[k] for l in losses])) for k in losses[0]})
+            if cuts:
+                row.update(cut_ins=cuts, cut_in_falls=cut_falls / cuts)
             metrics.log(counters["env_steps"], row, learner_steps=learner.steps * batch_size * unroll)
             (out_dir / "progress.json").write_text(json.dumps({"env_steps": counters["env_steps"],
                                                                "total_steps": total_steps, **row}))
             returns, completions, step_rewards, losses = [], [], [], []
+            cuts, cut_falls = 0, 0
         if time.monotonic() - last_save > float(cfg["checkpoint_seconds"]):
             save()
             last_save = time.monotonic()
@@ -300,7 +320,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     greedy = _greedy(NumpyPolicy.from_torch(policy))
     with switch_starts(env, 0.0):
         final = evaluate(env, greedy, int(cfg["eval_episodes"]), "eval_")
-    if switching > 0:
+    if switching > 0 or cutting > 0:
         with switch_starts(env, 1.0):
             final.update(evaluate(env, greedy, int(cfg["eval_episodes"]), "eval_switch_"))
     metrics.log(counters["env_steps"], final, learner_steps=learner.steps * batch_size * unroll)
