@@ -127,10 +127,9 @@ def test_a_cut_in_starts_the_next_episode_where_another_skills_fragment_left_the
     assert cut_in(env, library.experts, 3, rng) is None
 
 
-def test_an_expert_trained_with_switch_starts_is_scored_from_both_kinds_of_start(tmp_path):
-    """Its training episodes start away from the reference (a lower step reward than the same
-    run, warm-started from the shipped stand expert, without switch starts); its final
-    evaluation scores both kinds of start."""
+def _train_stand(out, option: str, log_every: int, total_steps: int):
+    """A tiny training of the stand expert, warm-started from the shipped one, with one extra
+    lowlevel option; (its final evaluation, its metrics)."""
     import pandas as pd
     from omegaconf import OmegaConf
 
@@ -140,19 +139,25 @@ def test_an_expert_trained_with_switch_starts_is_scored_from_both_kinds_of_start
 
     stand = ExpertLibrary.load(shipped_library()).experts[0]
     assert stand.entry["behaviour"] == "stand"
+    cfg = compose(["stage=lowlevel", "task=tracking", "clip=stand", "lowlevel.bc_steps=20",
+                   "lowlevel.bc_rollouts=2", "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=3",
+                   f"lowlevel.log_every={log_every}", "lowlevel.batch_size=4", f"lowlevel.{option}",
+                   "lowlevel.switch_states=20", "lowlevel.warm_start_critic_steps=1000"])
+    task, body, render = env_dicts(cfg)
+    result = train_expert(task, body, render, OmegaConf.to_container(cfg.lowlevel), out, total_steps=total_steps,
+                          warm_start=stand.policy)
+    return result, pd.read_csv(out / "metrics.csv")
 
+
+def test_an_expert_trained_with_switch_starts_is_scored_from_both_kinds_of_start(tmp_path):
+    """Its training episodes start away from the reference (a lower step reward than the same
+    run, warm-started from the shipped stand expert, without switch starts); its final
+    evaluation scores both kinds of start."""
     rewards = {}
     for share in (0.0, 1.0):
-        cfg = compose(["stage=lowlevel", "task=tracking", "clip=stand", "lowlevel.bc_steps=20",
-                       "lowlevel.bc_rollouts=2", "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=3",
-                       "lowlevel.log_every=50", "lowlevel.batch_size=4", f"lowlevel.switch_starts={share}",
-                       "lowlevel.switch_states=20", "lowlevel.warm_start_critic_steps=1000"])
-        task, body, render = env_dicts(cfg)
-        out = tmp_path / str(share)
-        result = train_expert(task, body, render, OmegaConf.to_container(cfg.lowlevel), out, total_steps=150,
-                              warm_start=stand.policy)
+        result, metrics = _train_stand(tmp_path / str(share), f"switch_starts={share}", 50, 150)
         assert ("eval_switch_completion" in result) == (share > 0) and "eval_completion" in result
-        rewards[share] = pd.read_csv(out / "metrics.csv").query("key == 'step_reward'").value.mean()
+        rewards[share] = metrics.query("key == 'step_reward'").value.mean()
     assert rewards[1.0] < 0.7 * rewards[0.0]
 
 
@@ -199,26 +204,10 @@ def test_an_expert_trained_with_cut_ins_hands_over_at_its_fragment_ends(tmp_path
     """With cut_ins=1 every fragment of the expert's own ends in a cut-in unless its episode
     ended: about one per 3 env steps; they are logged with the share whose fragment fell, and
     the expert is scored from switch states too. Without cut-ins none are logged."""
-    import pandas as pd
-    from omegaconf import OmegaConf
-
-    from hvc.lowlevel.library import ExpertLibrary, shipped_library
-    from hvc.lowlevel.train import train_expert
-    from hvc.runtime.env_config import env_dicts
-
-    stand = ExpertLibrary.load(shipped_library()).experts[0]
     rows = {}
     for share in (0.0, 1.0):
-        cfg = compose(["stage=lowlevel", "task=tracking", "clip=stand", "lowlevel.bc_steps=20",
-                       "lowlevel.bc_rollouts=2", "lowlevel.min_replay_unrolls=5", "lowlevel.eval_episodes=3",
-                       "lowlevel.log_every=60", "lowlevel.batch_size=4", f"lowlevel.cut_ins={share}",
-                       "lowlevel.switch_states=20", "lowlevel.warm_start_critic_steps=1000"])
-        task, body, render = env_dicts(cfg)
-        out = tmp_path / str(share)
-        result = train_expert(task, body, render, OmegaConf.to_container(cfg.lowlevel), out, total_steps=180,
-                              warm_start=stand.policy)
+        result, rows[share] = _train_stand(tmp_path / str(share), f"cut_ins={share}", 60, 180)
         assert ("eval_switch_completion" in result) == (share > 0)
-        rows[share] = pd.read_csv(out / "metrics.csv")
     assert "cut_ins" not in set(rows[0.0].key)
     cuts = rows[1.0].query("key == 'cut_ins'").value
     falls = rows[1.0].query("key == 'cut_in_falls'").value

@@ -244,7 +244,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     last_save, start, start_steps = time.monotonic(), time.perf_counter(), counters["env_steps"]
     returns, completions, step_rewards, losses = [], [], [], []
     cuts, cut_falls = 0, 0
-    obs, segment = env.reset(), 0  # segment: steps since this episode's start (cut-ins come at fragment ends)
+    obs = env.reset()
     stop = StopRequest()
     while counters["env_steps"] < total_steps:
         if stop.requested:  # SIGTERM between unrolls: keep every step taken so far
@@ -262,20 +262,20 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
             seq_logmu.append(log_mu)
             step_rewards.append(reward)
             counters["env_steps"] += 1
-            segment += 1
             if done:
                 returns.append(env.episode_return)
                 completions.append(logic.completion)
                 counters["episodes"] += 1
                 break
-            if cutters and segment % fragment_len == 0 and cut_rng.random() < cutting:
+            own = env.layout.logic  # cut-ins come at the ends of its fragments, counted from the episode's start
+            if cutters and (own.t - own.start) % fragment_len == 0 and cut_rng.random() < cutting:
                 cut = True  # the unroll ends here, not failed: its last step bootstraps from obs
                 break
         replay.add(**pad_unroll(unroll, seq_obs, seq_act, seq_rew, seq_disc, seq_logmu))
         if done:
-            obs, segment = env.reset(), 0
+            obs = env.reset()
         elif cut:
-            obs, segment = cut_in(env, cutters, fragment_len, cut_rng), 0
+            obs = cut_in(env, cutters, fragment_len, cut_rng)
             cuts += 1
             if obs is None:  # the other skill's fragment fell: not this expert's episode to learn from
                 cut_falls += 1
