@@ -267,10 +267,11 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
                 completions.append(logic.completion)
                 counters["episodes"] += 1
                 break
-            own = env.layout.logic  # cut-ins come at the ends of its fragments, counted from the episode's start
-            if cutters and (own.t - own.start) % fragment_len == 0 and cut_rng.random() < cutting:
-                cut = True  # the unroll ends here, not failed: its last step bootstraps from obs
-                break
+            if cutters:  # cut-ins come at the ends of its fragments, counted from the episode's start
+                own = env.layout.logic
+                if (own.t - own.start) % fragment_len == 0 and cut_rng.random() < cutting:
+                    cut = True  # the unroll ends here, not failed: its last step bootstraps from obs
+                    break
         replay.add(**pad_unroll(unroll, seq_obs, seq_act, seq_rew, seq_disc, seq_logmu))
         if done:
             obs = env.reset()
