@@ -5,6 +5,8 @@
 Reads the run's recorded episodes (record_episodes=N) and fragments.csv, counts how often
 fragment i is followed by fragment j when the high level chooses, and draws the density
 with the clips' boundaries, plus how often each clip's fragments were chosen.
+`behaviour_shares` sets each behaviour's share of the choices beside its share of the
+library's fragments (Fig. A.4C: are extraneous behaviours ignored?).
 """
 from __future__ import annotations
 
@@ -26,6 +28,27 @@ def transition_counts(run_dir: Path) -> tuple[np.ndarray, pd.DataFrame]:
         chosen = chosen[chosen >= 0]
         np.add.at(counts, (chosen[:-1], chosen[1:]), 1)
     return counts, table
+
+
+def behaviour_shares(run_dir: Path, skip_rewarded_at_start: bool = False) -> pd.DataFrame:
+    """Per behaviour: `chosen`, its share of the high level's choices, and `fragments`, its share
+    of the library (what uniform choices would give). `skip_rewarded_at_start` leaves out the
+    episodes rewarded from their first step (on go_to_target: spawned at the target, where the
+    agent only stands), so the shares describe the walks to the target."""
+    table = pd.read_csv(run_dir / "fragments.csv")
+    chosen = []
+    for path in sorted((run_dir / "episodes").glob("episode_*.npz")):
+        with np.load(path) as ep:
+            if skip_rewarded_at_start and len(ep["reward"]) and ep["reward"][0] > 0:
+                continue
+            picks = ep["hl_action"][ep["new_action"]].astype(int)
+        chosen.append(picks[picks >= 0])
+    picks = np.concatenate(chosen) if chosen else np.zeros(0, int)
+    behaviours = list(dict.fromkeys(table.behaviour))
+    counts = pd.Series(table.behaviour.to_numpy()[picks]).value_counts().reindex(behaviours, fill_value=0)
+    return pd.DataFrame({"chosen": counts / max(len(picks), 1),
+                         "fragments": table.behaviour.value_counts(normalize=True).reindex(behaviours)},
+                        index=pd.Index(behaviours, name="behaviour"))
 
 
 def draw(counts: np.ndarray, table: pd.DataFrame, title: str = "fragment transitions (log density)"):
