@@ -175,11 +175,3 @@ def _factor_value(value):
     if isinstance(value, list):
         return json.dumps(value, sort_keys=True)
     return value
-
-
-def runs_table(frame: pd.DataFrame) -> pd.DataFrame:
-    """One row per run: its status, options and how far it got (env steps)."""
-    option_columns = [c for c in frame.columns if c not in ("env_steps", "learner_steps", "wall_time", "key", "value")]
-    table = frame.groupby("run", sort=True)[option_columns[1:]].first()
-    table["env_steps"] = frame.groupby("run").env_steps.max()
-    return table

@@ -88,7 +88,7 @@ class FastEnv:
     def __init__(self, layouts: list[Layout], task: Mapping[str, Any], body: Mapping[str, Any],
                  render_settings: Mapping[str, Any] | None = None, seed: int = 0,
                  render: bool | None = None):
-        self.task_cfg, self.body_cfg = task, body
+        self.task_cfg = task
         self.render_settings = render_settings
         self.rng = np.random.default_rng(seed)
         self.control_timestep = float(task["control_timestep"])

@@ -262,9 +262,5 @@ class MazeLogic(TaskLogic):
     def terminated(self):
         return self.failure or bool(self.activated.all())
 
-    @property
-    def targets_collected(self) -> int:
-        return int(self.activated.sum())
-
 
 LOGIC_BY_KIND = {"go_to_target": GoToTargetLogic, "corridor": CorridorLogic, "maze": MazeLogic}

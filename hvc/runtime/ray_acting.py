@@ -67,9 +67,6 @@ class UnrollActor:
         returns = [i["episode_return"] for s in steps for i in s.infos if "episode_return" in i]
         return unrolls_of(steps, self.actor, start_state, self.names)[0], returns
 
-    def crash(self, message: str) -> None:  # for tests: an actor failing mid-run
-        raise RuntimeError(message)
-
 
 class RayActing:
     """`num_envs` UnrollActors on the Ray cluster (`ray.address`, or a local Ray). Until
