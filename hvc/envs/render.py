@@ -1,9 +1,10 @@
 """CPU-friendly egocentric rendering with mujoco.Renderer.
 
 dm_control's camera observables render with the model's full visual settings (shadows,
-reflections, skybox, 4x anti-aliasing): about 36 frames/s at 64x64 on llvmpipe. The
-fast settings (conf/render/fast.yaml) keep textures and geometry and reach well over
-1000 frames/s. A Renderer owns a GL context, so create it in the process that renders.
+reflections, skybox, 4x anti-aliasing), which dominate a CPU render (llvmpipe). The fast
+settings (conf/render/fast.yaml) keep textures and geometry and drop those (frame rates in
+docs/results/design_measurements/). A Renderer owns a GL context, so create it in the
+process that renders.
 """
 from __future__ import annotations
 

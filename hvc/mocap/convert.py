@@ -66,7 +66,7 @@ def make_walker(walker_version: str = "2019") -> cmu_humanoid.CMUHumanoidPositio
 class WalkerPoser:
     """The walker on a floor arena in an mjcf Physics, posed kinematically (no simulation).
 
-    Building the walker and compiling the model costs ~0.1 s, so one poser serves a whole folder.
+    Building the walker and compiling the model is slow next to posing, so one poser serves a whole folder.
     """
 
     def __init__(self, walker_version: str = "2019") -> None:
@@ -216,8 +216,8 @@ def fit_floor_slope(
     """Gradient (dz/dx, dz/dy) of the capture floor under the stance feet, or zeros if not measurable.
 
     Some CMU sessions (subjects 02, 07, 08) were captured with the floor tilted in the
-    capture frame: the stance foot rises 5-13 cm over a 4 m walk, so a constant z offset
-    leaves the feet floating by the end. The floor is fitted as a plane through the
+    capture frame: the stance foot rises over a walk, so a constant z offset leaves the feet
+    floating by the end (docs/results/design_measurements/). The floor is fitted as a plane through the
     per-window stance minima at the root's xy, refitted once without outliers (a toe bent
     beyond the walker's range dips through the floor). Directions in which the root moves
     less than `min_spread` (std, m) are left level (a straight walk measures the slope only
@@ -247,7 +247,7 @@ def floor_offset(foot_heights: np.ndarray, dt: float, max_penetration: float = 0
     """z shift that puts the typical (median) stance foot on z = 0, but sinks no step more than `max_penetration`.
 
     Plain "lowest point over the clip on the floor" lets one odd frame (a toe bent beyond
-    the walker's range, 131_09 at 4.5 s) lift the whole clip by 5-10 cm; bounding the
+    the walker's range, as in 131_09) lift the whole clip off the floor; bounding the
     penetration instead keeps typical stance on the floor. `max_penetration=0` gives
     the plain rule.
     """
