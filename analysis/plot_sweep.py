@@ -7,6 +7,7 @@ facet, and print each arm's final IQM with its bootstrap CI and how many runs fi
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 
@@ -24,6 +25,7 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--points", type=int, default=100, help="grid points per curve")
     parser.add_argument("--partial", action="store_true",
                         help="draw curve points that only some seeds reached (n_seeds marks them)")
+    parser.add_argument("--title", default=None, help="the figure's title (default: the dirs' common folder)")
     parser.add_argument("-o", "--out", type=Path, default=Path("sweep.png"))
     args = parser.parse_args(argv)
     by = [k for k in args.by.split(",") if k]
@@ -38,12 +40,25 @@ def main(argv: list[str] | None = None) -> Path:
         table = iqm_table(scores, keys, statuses=STATUSES[:3] if args.partial else ("finished",))
     except ValueError as error:
         parser.error(str(error))
-    fig = plot_curves(lines, by, args.facet, x=args.x, scores=scores, title=", ".join(map(str, args.dirs)))
+    fig = plot_curves(lines, by, args.facet, x=args.x, scores=scores, title=args.title or _title(args.dirs))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     print(args.out)
     return args.out
+
+
+def _title(dirs: list[Path]) -> str:
+    """One dir as given; several as their common folder and how many (a list of them would
+    run off the figure)."""
+    if len(dirs) == 1:
+        return str(dirs[0])
+    common = os.path.commonpath([d.resolve() for d in dirs])
+    try:
+        common = os.path.relpath(common)
+    except ValueError:  # another drive (Windows)
+        pass
+    return f"{common} ({len(dirs)} dirs)"
 
 
 if __name__ == "__main__":

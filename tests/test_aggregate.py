@@ -189,6 +189,24 @@ def test_a_locked_run_dir_is_running(tmp_path):
         assert run_status(run) == "running"
 
 
+def test_arm_labels_name_files_by_their_last_parts_and_keep_the_key_of_defaults():
+    from hvc.analysis.plots import _label
+
+    assert _label(["controller", "fragment_len"], ("fragments", 3)) == "fragments, fragment_len=3"
+    assert _label(["library"], "default") == "library=default"
+    assert (_label(["library"], "docs/results/skills/go_to_target_switch_starts/experts_go_to_target.npz")
+            == "library=go_to_target_switch_starts/experts_go_to_target.npz")
+
+
+def test_a_figure_of_several_dirs_is_titled_by_their_common_folder(tmp_path):
+    import plot_sweep
+
+    a, b = tmp_path / "figs" / "a" / "runs", tmp_path / "figs" / "b"
+    assert plot_sweep._title([a]) == str(a)
+    title = plot_sweep._title([a, b])
+    assert title.endswith("figs (2 dirs)") and "runs" not in title
+
+
 def test_plot_sweep_draws_one_curve_per_arm_with_bands(sweep, tmp_path, capsys):
     import matplotlib.pyplot as plt
     import plot_sweep

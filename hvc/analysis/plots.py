@@ -3,12 +3,14 @@ final IQM with its confidence interval per arm; legends outside the axes, so tha
 curve hides under one."""
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Sequence
 
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+LEGEND_INCHES_PER_CHAR = 0.065  # legend text at fontsize 8
 X_LABELS = {"learner_steps": "transitions processed by the learner", "env_steps": "env steps"}
 
 
@@ -18,9 +20,17 @@ def _key(group) -> tuple:
 
 
 def _label(keys: Sequence[str], values) -> str:
-    values = _key(values)
-    return ", ".join(f"{k}={v}" if k in ("fragment_len", "seed") or not isinstance(v, str) else str(v)
-                     for k, v in zip(keys, values)) or "all runs"
+    """`controller=fragments` reads as "fragments"; numbers, "default" and files keep their key,
+    files shortened to their last two path parts (a library's folder names its training)."""
+    parts = []
+    for k, v in zip(keys, _key(values)):
+        if isinstance(v, str) and "/" in v:
+            parts.append(f"{k}=" + "/".join(Path(v).parts[-2:]))
+        elif isinstance(v, str) and v != "default" and k not in ("fragment_len", "seed"):
+            parts.append(v)
+        else:
+            parts.append(f"{k}={v}")
+    return ", ".join(parts) or "all runs"
 
 
 def _panels(facet: str | None, frame: pd.DataFrame, width: float = 4.2, height: float = 3.4):
@@ -58,7 +68,8 @@ def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None 
                 random = scores[mine].random
                 if random.notna().any():
                     ax.axhline(random.mean(), color=colour, ls="--", lw=1, label="random policy (dashed)")
-        ax.set_title(f"{facet}={name}" if facet else (title or ""))
+        if facet:
+            ax.set_title(f"{facet}={name}")
         ax.set_xlabel(X_LABELS[x])
         ax.set_ylabel("return per episode")
         ax.grid(alpha=0.3)
@@ -69,8 +80,10 @@ def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None 
     if "random policy (dashed)" in handles:
         handles["random policy (dashed)"] = plt.Line2D([], [], color="grey", ls="--", lw=1)
     fig.legend(list(handles.values()), list(handles), loc="outside right upper", fontsize=8)
-    if title and facet:
-        fig.suptitle(title, x=0.02, ha="left")
+    # the legend's room comes on top of the panels', so long arm labels do not squeeze the axes
+    fig.set_figwidth(fig.get_figwidth() + max(0.0, LEGEND_INCHES_PER_CHAR * max(map(len, handles)) - 2.2))
+    if title:
+        fig.suptitle(title, x=0.02, ha="left", fontsize=10)
     return fig
 
 
