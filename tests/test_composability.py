@@ -53,6 +53,55 @@ def test_falls_and_switches_are_counted_as_scripted(monkeypatch):
     assert scores["switches"] == {"a->b": {"survived": pytest.approx(1 / 3), "of": 3}, "b->a": {"survived": 0.0, "of": 1}}
 
 
+class PlayingEnvs:
+    """One env that plays the fragments it is given, 3 steps each, and falls at `fall_step`;
+    its random choices are scripted (each taken once), so the driver's own choices show."""
+
+    controller, num_envs = "fragments", 1
+
+    def __init__(self, randoms, fall_step):
+        experts = [SimpleNamespace(entry={"behaviour": "a"}), SimpleNamespace(entry={"behaviour": "b"})]
+        fragments = ([SimpleNamespace(clip=0, start=s, length=3) for s in (0, 3, 6)]          # a: 0, 1, 2
+                     + [SimpleNamespace(clip=1, start=s, length=3) for s in range(0, 30, 3)])  # b: 3..12
+        self.skills = SimpleNamespace(library=SimpleNamespace(experts=experts), fragments=fragments)
+        self.randoms, self.fall_step, self.taken, self.t = list(randoms), fall_step, [], 0
+
+    def reset(self):
+        return {}
+
+    def random_actions(self, rng):
+        return [self.randoms[0]]
+
+    def step(self, actions):
+        new = self.t % 3 == 0
+        if new:
+            self.taken.append(int(actions[0]))
+            if self.taken[-1] == self.randoms[0]:
+                self.randoms.pop(0)
+        self.t += 1
+        done = self.t == self.fall_step
+        info = {"new_action": new, "hl_action": self.taken[-1], **({"episode_length": self.t} if done else {})}
+        return {}, np.zeros(1), np.array([0.0 if done else 1.0]), np.array([done]), [info]
+
+    def close(self):
+        pass
+
+
+def test_held_switches_play_their_clip_on_and_are_scored_alone(monkeypatch):
+    from hvc.runtime import composability, env_config
+
+    envs = PlayingEnvs(randoms=[0, 3, 2, 3, 12], fall_step=18)
+    monkeypatch.setattr(env_config, "vector_env", lambda cfg, seed: envs)
+    monkeypatch.setattr(composability, "HORIZON_SECONDS", 0.18)  # 6 steps: two fragments per hold
+    cfg = OmegaConf.create({"controller": {"name": "fragments"}, "task": {"time_limit": 30.0, "control_timestep": 0.03}})
+    scores = composability.cold_switching(cfg, episodes=1, hold=True)
+    # a (random) and its next fragment; a->b and b's next; b->a at a's last fragment, which has no next,
+    # so a->b again at once; then the fall two steps into that hold
+    assert envs.taken == [0, 1, 3, 4, 2, 3]
+    assert scores["switches"] == {"a->b": {"survived": 0.5, "of": 2}, "b->a": {"survived": 1.0, "of": 1}}
+    assert scores["hold"] and scores["mean_steps"] == 18 and scores["fall_rate"] == 1.0
+
+
 def test_random_fragments_of_the_shipped_library_fall_within_seconds():
     from hvc.runtime.composability import cold_switching, composability_config
 
@@ -61,3 +110,23 @@ def test_random_fragments_of_the_shipped_library_fall_within_seconds():
     behaviours = {"stand", "run", "left_turn", "right_turn"}
     assert scores["switches"] and all(set(pair.split("->")) <= behaviours for pair in scores["switches"])
     assert all(0.0 <= s["survived"] <= 1.0 and s["of"] > 0 for s in scores["switches"].values())
+
+    held = cold_switching(composability_config(compose(["stage=evaluate"]), "fragments"), episodes=3, hold=True)
+    assert held["hold"] and held["episodes"] == 3 and 0 < held["median_steps"] <= held["cap"]
+    assert all(set(pair.split("->")) <= behaviours for pair in held["switches"])
+
+
+def test_evaluate_prints_and_logs_both_drivers_for_fragments(tmp_path, capsys):
+    import pandas as pd
+
+    from hvc.io.metrics import MetricsLogger
+    from hvc.runtime.evaluate_stage import composability
+
+    with MetricsLogger(tmp_path / "metrics.csv") as metrics:
+        scores = composability(compose(["stage=evaluate", "episodes=2"]), metrics)
+    out = capsys.readouterr().out
+    assert "compose controller=fragments clips=go_to_target episodes=2" in out
+    assert "compose_held controller=fragments clips=go_to_target episodes=2" in out
+    assert not scores["hold"] and scores["held"]["hold"] and scores["held"]["episodes"] == 2
+    keys = set(pd.read_csv(tmp_path / "metrics.csv").key)
+    assert {"compose_median_steps", "compose_held_median_steps", "compose_held_fall_rate"} <= keys

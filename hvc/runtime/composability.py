@@ -7,6 +7,12 @@ starts: steps until a fall (a terminating step; an episode that reaches the time
 as its full length), and for the fragment controllers a clip-to-clip table: of the switches
 from a fragment of clip a to one of clip b, the share after which the body stays up for the
 next `horizon` control steps (about one gait cycle) or until the episode's time limit.
+
+Under random actions those `horizon` steps hold about ten more random switches, so that table
+scores chains, not the a -> b switch itself. With `hold`, each random switch is followed by
+clip b's own next fragments, in order, for `horizon` steps or until clip b ends, as a high level
+that plays a clip on would do: the table then scores each transition alone, and the steps
+until a fall are those of a driver that switches at random once per gait cycle.
 """
 from __future__ import annotations
 
@@ -30,9 +36,11 @@ def composability_config(cfg: DictConfig, controller: str) -> DictConfig:
     return out
 
 
-def cold_switching(cfg: DictConfig, episodes: int, seed: int = 0) -> dict:
+def cold_switching(cfg: DictConfig, episodes: int, seed: int = 0, hold: bool = False) -> dict:
     """Steps until a fall under random high-level actions over `episodes` episodes, and the
-    clip-to-clip survival table for fragment controllers. `cfg` as composability_config gives."""
+    clip-to-clip survival table for fragment controllers; with `hold` (fragment controllers
+    only), each random switch is played on through clip b's next fragments (module docstring).
+    `cfg` as composability_config gives."""
     from hvc.runtime.env_config import vector_env
 
     envs = vector_env(cfg, seed)
@@ -42,19 +50,32 @@ def cold_switching(cfg: DictConfig, episodes: int, seed: int = 0) -> dict:
         cap = int(round(float(cfg.task.time_limit) / float(cfg.task.control_timestep)))
         horizon = int(round(HORIZON_SECONDS / float(cfg.task.control_timestep)))
         clip_of = _clip_of_fragment(envs)
+        if hold and clip_of is None:
+            raise ValueError(f"hold: only fragment controllers have clips to play on, not {cfg.controller.name}")
+        successor = _next_fragment(envs) if hold else None
         rng = np.random.default_rng(seed)
         lengths, falls = [], 0
         tried, survived = defaultdict(int), defaultdict(int)
         pending: list[tuple[tuple[str, str], int]] = []  # (switch, step by which the body must still be up)
         previous, step = None, 0
+        fragment, hold_until = None, 0  # with hold: the running fragment, and the step its clip is played to
         envs.reset()
         while len(lengths) < episodes:
-            _, _, discounts, dones, infos = envs.step(envs.random_actions(rng))
+            actions = envs.random_actions(rng)
+            playing_on = hold and fragment is not None and step + 1 < hold_until and successor[fragment] >= 0
+            if playing_on:  # taken only when the running fragment ends
+                actions = [successor[fragment]]
+            _, _, discounts, dones, infos = envs.step(actions)
             info, step = infos[0], step + 1
             if clip_of is not None and info.get("new_action"):  # chosen for this step: its fall counts
-                current = clip_of[int(info["hl_action"])]
-                if previous is not None:
-                    pending.append(((previous, current), step + horizon))
+                fragment = int(info["hl_action"])
+                current = clip_of[fragment]
+                if not playing_on:  # a random choice: a switch
+                    if hold:  # the transitions played on so far stayed up through their whole hold
+                        pending = [(pair, step) for pair, _ in pending]
+                    if previous is not None:
+                        pending.append(((previous, current), step + horizon))
+                    hold_until = step + horizon
                 previous = current
             fell = bool(dones[0]) and discounts[0] == 0.0
             still = []
@@ -68,11 +89,11 @@ def cold_switching(cfg: DictConfig, episodes: int, seed: int = 0) -> dict:
             if dones[0]:
                 lengths.append(min(int(info["episode_length"]), cap))
                 falls += fell
-                previous, step = None, 0
+                previous, step, fragment = None, 0, None
     finally:
         envs.close()
     lengths = np.asarray(lengths)
-    return {"controller": str(cfg.controller.name), "episodes": len(lengths), "cap": cap, "horizon": horizon,
+    return {"controller": str(cfg.controller.name), "hold": hold, "episodes": len(lengths), "cap": cap, "horizon": horizon,
             "mean_steps": float(lengths.mean()), "median_steps": float(np.median(lengths)),
             "fall_rate": float(falls / len(lengths)),
             "switches": {f"{a}->{b}": {"survived": survived[(a, b)] / tried[(a, b)], "of": tried[(a, b)]}
@@ -85,3 +106,10 @@ def _clip_of_fragment(envs) -> list[str] | None:
         return None
     experts = envs.skills.library.experts
     return [f"{experts[f.clip].entry['behaviour']}" for f in envs.skills.fragments]
+
+
+def _next_fragment(envs) -> list[int]:
+    """Fragment index -> the index of the same clip's next fragment, -1 after its last."""
+    fragments = envs.skills.fragments
+    index = {(f.clip, f.start): i for i, f in enumerate(fragments)}
+    return [index.get((f.clip, f.start + f.length), -1) for f in fragments]

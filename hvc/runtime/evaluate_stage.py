@@ -126,28 +126,32 @@ def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
 
 def composability(cfg: DictConfig, metrics: MetricsLogger) -> dict | None:
     """The library's skills under random high-level actions (hvc.runtime.composability): one
-    line for the steps until a fall, and one per clip-to-clip switch for fragments."""
+    line for the steps until a fall, and one per clip-to-clip switch for fragments; for
+    fragments the same again with each switch played on through its clip (`compose_held`)."""
     from hvc.errors import ControllerUnavailable
     from hvc.runtime.composability import cold_switching, composability_config
 
     name = str(cfg.clips.name)
     controller = name if name in ("steerable", "switching") else "fragments"
-    try:
-        scores = cold_switching(composability_config(cfg, controller), int(cfg.episodes), int(cfg.seed))
-    except ControllerUnavailable as error:  # e.g. a stage=lowlevel run dir still training: no library file yet
-        print(f"compose skipped: {error}")
-        return None
-    print(f"compose controller={controller} clips={name} episodes={scores['episodes']} "
-          f"mean_steps={scores['mean_steps']:.1f} median_steps={scores['median_steps']:.0f} "
-          f"fall_rate={scores['fall_rate']:.2f} cap={scores['cap']}")
-    row = {f"compose_{k}": scores[k] for k in ("mean_steps", "median_steps", "fall_rate")}
-    for pair, switch in scores["switches"].items():
-        a, b = pair.split("->")
-        print(f"compose_switch from={a} to={b} survived={switch['survived']:.2f} of {switch['of']} "
-              f"(next {scores['horizon']} steps)")
-        row[f"compose_survived/{pair}"] = switch["survived"]
-    metrics.log(0, row)
-    return scores
+    scored = {}
+    for prefix, hold in [("compose", False)] + ([("compose_held", True)] if controller == "fragments" else []):
+        try:
+            scores = cold_switching(composability_config(cfg, controller), int(cfg.episodes), int(cfg.seed), hold=hold)
+        except ControllerUnavailable as error:  # e.g. a stage=lowlevel run dir still training: no library file yet
+            print(f"compose skipped: {error}")
+            return None
+        print(f"{prefix} controller={controller} clips={name} episodes={scores['episodes']} "
+              f"mean_steps={scores['mean_steps']:.1f} median_steps={scores['median_steps']:.0f} "
+              f"fall_rate={scores['fall_rate']:.2f} cap={scores['cap']}")
+        row = {f"{prefix}_{k}": scores[k] for k in ("mean_steps", "median_steps", "fall_rate")}
+        until = f"next {scores['horizon']} steps" + (" played on, or to the clip's end" if hold else "")
+        for pair, switch in scores["switches"].items():
+            a, b = pair.split("->")
+            print(f"{prefix}_switch from={a} to={b} survived={switch['survived']:.2f} of {switch['of']} ({until})")
+            row[f"{prefix}_survived/{pair}"] = switch["survived"]
+        metrics.log(0, row)
+        scored["held" if hold else "random"] = scores
+    return scored["random"] if len(scored) == 1 else {**scored["random"], "held": scored["held"]}
 
 
 def record_expert_video(env, expert, path: Path) -> Path:
