@@ -53,11 +53,10 @@ def _title(dirs: list[Path]) -> str:
     run off the figure)."""
     if len(dirs) == 1:
         return str(dirs[0])
-    common = os.path.commonpath([d.resolve() for d in dirs])
     try:
-        common = os.path.relpath(common)
-    except ValueError:  # another drive (Windows)
-        pass
+        common = os.path.relpath(os.path.commonpath([d.resolve() for d in dirs]))
+    except ValueError:  # dirs on different drives (Windows): no common folder
+        return f"{len(dirs)} dirs"
     return f"{common} ({len(dirs)} dirs)"
 
 

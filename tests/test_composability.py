@@ -102,6 +102,29 @@ def test_held_switches_play_their_clip_on_and_are_scored_alone(monkeypatch):
     assert scores["hold"] and scores["mean_steps"] == 18 and scores["fall_rate"] == 1.0
 
 
+def test_a_fall_on_a_switch_step_is_the_new_switchs_and_episodes_start_afresh(monkeypatch):
+    from hvc.runtime import composability, env_config
+
+    class Resetting(PlayingEnvs):  # a new episode after each fall, as the vector env auto-resets
+        def step(self, actions):
+            out = super().step(actions)
+            if out[3][0]:
+                self.t, self.fall_step = 0, 7
+            return out
+
+    envs = Resetting(randoms=[0, 3, 5, 9, 12], fall_step=13)
+    monkeypatch.setattr(env_config, "vector_env", lambda cfg, seed: envs)
+    monkeypatch.setattr(composability, "HORIZON_SECONDS", 0.18)
+    cfg = OmegaConf.create({"controller": {"name": "fragments"}, "task": {"time_limit": 3.0, "control_timestep": 0.03}})
+    scores = composability.cold_switching(cfg, episodes=2, hold=True)
+    # episode 1: a, a's next, a->b at step 7 held through step 12, b->b at step 13 falls at once;
+    # episode 2 starts with a random choice (9), not the successor (6) of the fragment that fell,
+    # plays it on (10), and falls on its switch b->b at step 7
+    assert envs.taken == [0, 1, 3, 4, 5, 9, 10, 12]
+    assert scores["switches"] == {"a->b": {"survived": 1.0, "of": 1}, "b->b": {"survived": 0.0, "of": 2}}
+    assert scores["episodes"] == 2 and scores["mean_steps"] == 10.0
+
+
 def test_random_fragments_of_the_shipped_library_fall_within_seconds():
     from hvc.runtime.composability import cold_switching, composability_config
 

@@ -25,7 +25,7 @@ def _label(keys: Sequence[str], values) -> str:
     parts = []
     for k, v in zip(keys, _key(values)):
         if isinstance(v, str) and "/" in v:
-            parts.append(f"{k}=" + "/".join(Path(v).parts[-2:]))
+            parts.append(f"{k}=" + "/".join(part for part in Path(v).parts[-2:] if part != "/"))
         elif isinstance(v, str) and v != "default" and k not in ("fragment_len", "seed"):
             parts.append(v)
         else:
@@ -81,7 +81,7 @@ def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None 
         handles["random policy (dashed)"] = plt.Line2D([], [], color="grey", ls="--", lw=1)
     fig.legend(list(handles.values()), list(handles), loc="outside right upper", fontsize=8)
     # the legend's room comes on top of the panels', so long arm labels do not squeeze the axes
-    fig.set_figwidth(fig.get_figwidth() + max(0.0, LEGEND_INCHES_PER_CHAR * max(map(len, handles)) - 2.2))
+    fig.set_figwidth(fig.get_figwidth() + max(0.0, LEGEND_INCHES_PER_CHAR * max(map(len, handles), default=0) - 2.2))
     if title:
         fig.suptitle(title, x=0.02, ha="left", fontsize=10)
     return fig

@@ -12,7 +12,8 @@ Under random actions those `horizon` steps hold about ten more random switches, 
 scores chains, not the a -> b switch itself. With `hold`, each random switch is followed by
 clip b's own next fragments, in order, for `horizon` steps or until clip b ends, as a high level
 that plays a clip on would do: the table then scores each transition alone, and the steps
-until a fall are those of a driver that switches at random once per gait cycle.
+until a fall are those of a driver that switches at random at most once per gait cycle (sooner
+where clip b ends).
 """
 from __future__ import annotations
 
@@ -71,8 +72,11 @@ def cold_switching(cfg: DictConfig, episodes: int, seed: int = 0, hold: bool = F
                 fragment = int(info["hl_action"])
                 current = clip_of[fragment]
                 if not playing_on:  # a random choice: a switch
-                    if hold:  # the transitions played on so far stayed up through their whole hold
-                        pending = [(pair, step) for pair, _ in pending]
+                    if hold:  # the transition played on so far stayed up through its whole hold; this
+                        for pair, _ in pending:  # step is the new fragment's, and so is a fall in it
+                            tried[pair] += 1
+                            survived[pair] += 1
+                        pending = []
                     if previous is not None:
                         pending.append(((previous, current), step + horizon))
                     hold_until = step + horizon
