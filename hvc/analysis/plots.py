@@ -10,6 +10,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+LEGEND_INCHES = 2.2              # room the figure keeps right of its panels for the legend
 LEGEND_INCHES_PER_CHAR = 0.065  # legend text at fontsize 8
 X_LABELS = {"learner_steps": "transitions processed by the learner", "env_steps": "env steps"}
 
@@ -37,7 +38,7 @@ def _panels(facet: str | None, frame: pd.DataFrame, width: float = 4.2, height: 
     names = list(pd.unique(frame[facet])) if facet else [None]
     cols = min(len(names), 3)
     rows = int(np.ceil(len(names) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(width * cols + 2.2, height * rows), squeeze=False,
+    fig, axes = plt.subplots(rows, cols, figsize=(width * cols + LEGEND_INCHES, height * rows), squeeze=False,
                              layout="constrained")
     for ax in axes.flat[len(names):]:
         ax.set_visible(False)
@@ -81,7 +82,7 @@ def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None 
         handles["random policy (dashed)"] = plt.Line2D([], [], color="grey", ls="--", lw=1)
     fig.legend(list(handles.values()), list(handles), loc="outside right upper", fontsize=8)
     # the legend's room comes on top of the panels', so long arm labels do not squeeze the axes
-    fig.set_figwidth(fig.get_figwidth() + max(0.0, LEGEND_INCHES_PER_CHAR * max(map(len, handles), default=0) - 2.2))
+    fig.set_figwidth(fig.get_figwidth() + max(0.0, LEGEND_INCHES_PER_CHAR * max(map(len, handles), default=0) - LEGEND_INCHES))
     if title:
         fig.suptitle(title, x=0.02, ha="left", fontsize=10)
     return fig

@@ -133,7 +133,7 @@ def composability(cfg: DictConfig, metrics: MetricsLogger) -> dict | None:
 
     name = str(cfg.clips.name)
     controller = name if name in ("steerable", "switching") else "fragments"
-    scored = {}
+    result = None
     for prefix, hold in [("compose", False)] + ([("compose_held", True)] if controller == "fragments" else []):
         try:
             scores = cold_switching(composability_config(cfg, controller), int(cfg.episodes), int(cfg.seed), hold=hold)
@@ -150,8 +150,11 @@ def composability(cfg: DictConfig, metrics: MetricsLogger) -> dict | None:
             print(f"{prefix}_switch from={a} to={b} survived={switch['survived']:.2f} of {switch['of']} ({until})")
             row[f"{prefix}_survived/{pair}"] = switch["survived"]
         metrics.log(0, row)
-        scored["held" if hold else "random"] = scores
-    return scored["random"] if len(scored) == 1 else {**scored["random"], "held": scored["held"]}
+        if hold:  # the random driver's scores, with the held driver's under "held"
+            result["held"] = scores
+        else:
+            result = scores
+    return result
 
 
 def record_expert_video(env, expert, path: Path) -> Path:
