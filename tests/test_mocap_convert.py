@@ -433,7 +433,7 @@ def test_convert_folder_writes_every_clip_once_preferring_the_amc(tmp_path, caps
     (src / "a_bvh" / "02").mkdir(parents=True)
     shutil.copy(CMU / "bvh" / "02" / "02_03.bvh", src / "a_bvh" / "02" / "02_01.bvh")  # same id, another take
     (src / "notes.txt").write_text("not a clip")
-    assert convert._clip_files(src) == [src / "amc/02/02_01.amc", src / "bvh/16/16_41.bvh"]
+    assert convert.clip_files(src) == [src / "amc/02/02_01.amc", src / "bvh/16/16_41.bvh"]
     out = tmp_path / "out.h5"
     assert convert.convert_folder(src, out) == ["CMU_002_01", "CMU_016_41"]
     bar = capsys.readouterr().err  # a progress bar by default, named after the file, counting clips
@@ -450,6 +450,40 @@ def test_convert_folder_writes_every_clip_once_preferring_the_amc(tmp_path, caps
         convert.convert_folder(tmp_path / "asf_only", out, progress=False)
     with pytest.raises(ValueError, match=r"walker_version must be one of \['2019', '2020'\], got '2018'"):
         convert.convert_folder(src, out, walker_version="2018", progress=False)
+
+
+@needs_mocap
+def test_the_offline_conversion_takes_in_clips_added_to_the_folder_since(tmp_path, monkeypatch):
+    """New clips may appear in the shared folder after a machine converted it: a run then
+    converts just those into the file it finds (clips already there are not redone, and with
+    nothing new the file is left alone), not fail on an unknown clip id."""
+    import shutil
+
+    from hvc.mocap import source
+
+    src = tmp_path / "cmu"
+    (src / "asf").mkdir(parents=True)
+    shutil.copy(CMU / "asf" / "02.asf", src / "asf")
+    (src / "bvh" / "16").mkdir(parents=True)
+    shutil.copy(CMU / "bvh/16/16_41.bvh", src / "bvh/16")
+    out = tmp_path / "outputs" / "cmu_2019.h5"
+    for var in ("HVC_MOCAP_FILE", "DM_CONTROL_DATA"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))  # no dm_control file in ~/.dm_control
+    monkeypatch.setattr(source, "SHARED_CLIPS", src)
+    monkeypatch.setattr(source, "converted_file", lambda version: out)
+    assert source.find_mocap_file(None) == out and set(source.clip_lengths(out)) == {"CMU_016_41"}
+    with h5py.File(out, "a") as f:
+        f["CMU_016_41"].attrs["mark"] = 1  # gone if the clip were converted again
+    before = out.stat().st_mtime_ns
+    assert source.find_mocap_file(None) == out and out.stat().st_mtime_ns == before
+
+    shutil.copy(CMU / "bvh/16/16_43.bvh", src / "bvh/16")
+    assert source.find_mocap_file(None) == out
+    assert source.clip_lengths(out) == {"CMU_016_41": 45, "CMU_016_43": 59}
+    with h5py.File(out, "r") as f:
+        assert f["CMU_016_41"].attrs["mark"] == 1
+    assert sorted(p.name for p in out.parent.iterdir()) == ["cmu_2019.h5", "cmu_2019.h5.lock"]  # no partial left
 
 
 @needs_mocap

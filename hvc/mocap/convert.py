@@ -26,7 +26,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import re
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from pathlib import Path
 from typing import Literal
 
@@ -452,7 +452,7 @@ def convert_clip(
     return _convert(Path(path), out_h5, poser, dt, asf_path, clip_id, date, velocity_scheme, level_floor)
 
 
-def _clip_files(source_dir: Path) -> list[Path]:
+def clip_files(source_dir: Path) -> list[Path]:
     """All .amc/.bvh files under `source_dir`; when a clip exists in both, the AMC (the original) wins."""
     by_id: dict[str, Path] = {}
     for p in sorted(source_dir.rglob("*")):
@@ -471,13 +471,16 @@ def convert_folder(
     progress: bool = True,
     velocity_scheme: VelocityScheme = "central",
     level_floor: bool = True,
+    skip: Collection[str] = (),
 ) -> list[str]:
-    """Convert every clip under a CMU folder (`amc/`, `bvh/`, `asf/`) into one HDF5; returns the ids written."""
+    """Convert every clip under a CMU folder (`amc/`, `bvh/`, `asf/`) into one HDF5, but those
+    whose ids are in `skip`; returns the ids written."""
     _check_version(walker_version)
     source_dir = Path(source_dir)
-    files = _clip_files(source_dir)
+    files = clip_files(source_dir)
     if not files:
         raise FileNotFoundError(f"no .amc or .bvh files under {source_dir}")
+    files = [p for p in files if clip_id_from_path(p) not in skip]
     poser = WalkerPoser(walker_version)
     it: Iterable[Path] = files
     if progress:

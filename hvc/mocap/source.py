@@ -3,12 +3,15 @@
 Search order: an explicit `mocap_file=`; `$HVC_MOCAP_FILE`; dm_control's fitted CMU file
 for the body's model version in `~/.dm_control/` or `$DM_CONTROL_DATA`; our conversion of
 the offline clips (`outputs/mocap/cmu_<version>.h5`, made by `hvc-run stage=convert`,
-or on first use from `../shared/mocap/cmu` when that folder exists).
+or on first use from `../shared/mocap/cmu` when that folder exists, and extended when
+clips are added to that folder).
 """
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
+import shutil
 from pathlib import Path
 
 import h5py
@@ -36,22 +39,46 @@ def find_mocap_file(explicit: str | None, model_version: str = "2019", convert_i
     for root in (os.environ.get("DM_CONTROL_DATA"), "~/.dm_control"):
         if root:
             candidates.append(Path(root).expanduser() / DM_CONTROL_FILES[str(model_version)])
-    candidates.append(converted_file(str(model_version)))
+    ours = converted_file(str(model_version))
+    candidates.append(ours)
     for path in candidates:
+        if path == ours and convert_if_missing and SHARED_CLIPS.is_dir():
+            return update_conversion(SHARED_CLIPS, ours, str(model_version))
         if path.exists():
             return path
-    if convert_if_missing and SHARED_CLIPS.is_dir():
-        from hvc.mocap.convert import convert_folder
-
-        out = converted_file(str(model_version))
-        out.parent.mkdir(parents=True, exist_ok=True)
-        log.info("converting the offline clips in %s into %s (once)", SHARED_CLIPS, out)
-        convert_folder(str(SHARED_CLIPS), str(out), walker_version=str(model_version))
-        return out
     raise FileNotFoundError(
         "no mocap file: searched " + ", ".join(str(c) for c in candidates)
         + "; convert clips with `hvc-run stage=convert source=<folder of ASF/AMC/BVH> out=<file.h5>` "
           "and pass mocap_file=<file.h5>")
+
+
+def update_conversion(source: Path, out: Path, model_version: str) -> Path:
+    """`out`, our conversion of the clips under `source`: made on first use, and brought up to
+    date when clips have been added to `source` since (only those are converted). It is built
+    in a copy that then replaces `out` whole, under a lock, so jobs started together neither
+    convert twice nor read a half-written file."""
+    from hvc.mocap.convert import convert_folder
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out.with_name(out.name + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        have = set(clip_lengths(check_mocap_file(out))) if out.exists() else set()
+        if not have or _clip_ids(source) - have:
+            partial = out.with_name(out.name + ".partial")
+            if have:
+                shutil.copyfile(out, partial)
+            else:
+                partial.unlink(missing_ok=True)
+            log.info("converting the clips in %s that %s lacks", source, out)
+            convert_folder(str(source), str(partial), walker_version=model_version, skip=have)
+            os.replace(partial, out)
+    return out
+
+
+def _clip_ids(source: Path) -> set[str]:
+    from hvc.mocap.convert import clip_files, clip_id_from_path
+
+    return {clip_id_from_path(p) for p in clip_files(source)}
 
 
 def check_mocap_file(path: Path, name: str | None = None) -> Path:
