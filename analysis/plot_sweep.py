@@ -1,5 +1,6 @@
 """Draw a sweep: learning curves (mean over seeds +- standard error) per arm, one panel per
-facet, and print each arm's final IQM with its bootstrap CI and how many runs finished.
+facet, and print each arm's final IQM with its bootstrap CI and how many runs finished
+(`--last 1` scores each run over all of it instead of its last 10%).
 
     python analysis/plot_sweep.py <sweep dir or run dirs...> --by fragment_len -o fig.png
     python analysis/plot_sweep.py outputs/sweeps/core_tasks/<time> --by controller --facet task -o fig6.png
@@ -25,9 +26,13 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--points", type=int, default=100, help="grid points per curve")
     parser.add_argument("--partial", action="store_true",
                         help="draw curve points that only some seeds reached (n_seeds marks them)")
+    parser.add_argument("--last", type=float, default=0.1,
+                        help="share of each run's env steps its score averages over (1: the whole run, how fast it learned)")
     parser.add_argument("--title", default=None, help="the figure's title (default: the dirs' common folder)")
     parser.add_argument("-o", "--out", type=Path, default=Path("sweep.png"))
     args = parser.parse_args(argv)
+    if not 0 < args.last <= 1:
+        parser.error(f"--last must be in (0, 1], got {args.last}")
     by = [k for k in args.by.split(",") if k]
     keys = by + ([args.facet] if args.facet else [])
     frame = load_runs(args.dirs, keys=["episodes", "episode_return", "random_return"])
@@ -36,7 +41,7 @@ def main(argv: list[str] | None = None) -> Path:
         parser.error(f"no option {', '.join(missing)} in these runs; they have: {', '.join(frame.attrs['factors'])}")
     try:
         lines = curves(frame, keys, x=args.x, points=args.points, complete=not args.partial)
-        scores = final_scores(frame)
+        scores = final_scores(frame, last=args.last)
         table = iqm_table(scores, keys, statuses=STATUSES[:3] if args.partial else ("finished",))
     except ValueError as error:
         parser.error(str(error))

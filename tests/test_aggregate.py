@@ -198,6 +198,23 @@ def test_arm_labels_name_files_by_their_last_parts_and_keep_the_key_of_defaults(
             == "library=go_to_target_switch_starts/experts_go_to_target.npz")
 
 
+def test_plot_sweep_scores_the_whole_run_with_last_1(tmp_path, capsys):
+    """--last 1 is how fast an arm learned: a run at 0 for its first half and 10 after scores 10
+    over its last 10% and 5 over all of it (each episode weighted once); outside (0, 1] is refused."""
+    import plot_sweep
+
+    for seed in (0, 1):
+        make_run(tmp_path / "runs", f"s{seed}", {"seed": seed}, lambda t: 0.0 if t <= 500 else 10.0)
+    rows = {}
+    for last in ("0.1", "1"):
+        plot_sweep.main([str(tmp_path / "runs"), "--last", last, "-o", str(tmp_path / f"{last}.png")])
+        table = capsys.readouterr().out.splitlines()
+        rows[last] = dict(zip(table[0].split(), table[1].split()))
+    assert float(rows["0.1"]["iqm"]) == 10 and float(rows["1"]["iqm"]) == 5
+    with pytest.raises(SystemExit):
+        plot_sweep.main([str(tmp_path / "runs"), "--last", "0", "-o", str(tmp_path / "x.png")])
+
+
 def test_a_figure_of_several_dirs_is_titled_by_their_common_folder(tmp_path):
     import plot_sweep
 
