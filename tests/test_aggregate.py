@@ -215,6 +215,16 @@ def test_plot_sweep_scores_the_whole_run_with_last_1(tmp_path, capsys):
         plot_sweep.main([str(tmp_path / "runs"), "--last", "0", "-o", str(tmp_path / "x.png")])
 
 
+def test_arms_whose_files_end_alike_get_labels_that_tell_them_apart():
+    from hvc.analysis.plots import _labels
+
+    a, b = ("runs/a/skills/experts_go_to_target.npz",), ("runs/b/skills/experts_go_to_target.npz",)
+    assert _labels(["library"], [a, b]) == {a: "library=a/skills/experts_go_to_target.npz",
+                                            b: "library=b/skills/experts_go_to_target.npz"}
+    c = ("other/experts_go_to_target.npz",)
+    assert _labels(["library"], [a, c])[a] == "library=skills/experts_go_to_target.npz"  # two parts suffice
+
+
 def test_a_figure_of_several_dirs_is_titled_by_their_common_folder(tmp_path):
     import plot_sweep
 

@@ -20,18 +20,29 @@ def _key(group) -> tuple:
     return group if isinstance(group, tuple) else (group,)
 
 
-def _label(keys: Sequence[str], values) -> str:
+def _label(keys: Sequence[str], values, depth: int = 2) -> str:
     """`controller=fragments` reads as "fragments"; numbers, "default" and files keep their key,
-    files shortened to their last two path parts (a library's folder names its training)."""
+    files shortened to their last `depth` path parts (a library's folder names its training)."""
     parts = []
     for k, v in zip(keys, _key(values)):
         if isinstance(v, str) and "/" in v:
-            parts.append(f"{k}=" + "/".join(part for part in Path(v).parts[-2:] if part != "/"))
+            parts.append(f"{k}=" + "/".join(part for part in Path(v).parts[-depth:] if part != "/"))
         elif isinstance(v, str) and v != "default" and k not in ("fragment_len", "seed"):
             parts.append(v)
         else:
             parts.append(f"{k}={v}")
     return ", ".join(parts) or "all runs"
+
+
+def _labels(keys: Sequence[str], arms: Sequence) -> dict:
+    """{arm: label}, file paths given as many trailing parts as it takes to tell the arms apart
+    (two libraries both named experts_go_to_target.npz in folders of the same name)."""
+    depth = 2
+    while True:
+        labels = {arm: _label(keys, arm, depth) for arm in arms}
+        if len(set(labels.values())) == len(labels) or labels == {arm: _label(keys, arm, depth + 1) for arm in arms}:
+            return labels
+        depth += 1
 
 
 def _panels(facet: str | None, frame: pd.DataFrame, width: float = 4.2, height: float = 3.4):
@@ -54,12 +65,13 @@ def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None 
     fig, names, axes = _panels(facet, curves)
     arms = [_key(a) for a in curves.groupby(by, sort=True).groups] if by else [()]
     colours = {arm: f"C{i % 10}" for i, arm in enumerate(arms)}
+    labels = _labels(by, arms)
     for name, ax in zip(names, axes):
         panel = curves[curves[facet] == name] if facet else curves
         for arm, c in (panel.groupby(by, sort=True) if by else [((), panel)]):
             arm = _key(arm) if by else ()
             colour = colours[arm]
-            label = f"{_label(by, arm)} ({c.n_runs.iloc[0]} seeds)"
+            label = f"{labels[arm]} ({c.n_runs.iloc[0]} seeds)"
             ax.plot(c[x], c["mean"], color=colour, label=label)
             ax.fill_between(c[x], c["mean"] - c.se.fillna(0), c["mean"] + c.se.fillna(0), color=colour, alpha=0.25)
             if scores is not None:  # each arm's own random policy: bodies and tasks differ in scale
@@ -92,9 +104,10 @@ def plot_final(table: pd.DataFrame, by: Sequence[str], facet: str | None = None,
     """Per arm: the IQM of final returns with its 95% bootstrap CI, one panel per facet."""
     by = [b for b in by if b != facet]
     fig, names, axes = _panels(facet, table, width=max(3.0, 0.7 * len(table) + 1.5), height=3.2)
+    names_of = _labels(by, list(dict.fromkeys(_key(tuple(r[b] for b in by)) for _, r in table.iterrows())))
     for name, ax in zip(names, axes):
         panel = table[table[facet] == name] if facet else table
-        labels = [_label(by, tuple(r[b] for b in by)) for _, r in panel.iterrows()]
+        labels = [names_of[_key(tuple(r[b] for b in by))] for _, r in panel.iterrows()]
         pos = np.arange(len(panel))
         ax.errorbar(pos, panel.iqm, yerr=[panel.iqm - panel.ci_low, panel.ci_high - panel.iqm],
                     fmt="o", capsize=4)
