@@ -219,10 +219,12 @@ def test_arms_whose_files_end_alike_get_labels_that_tell_them_apart():
     from hvc.analysis.plots import _labels
 
     a, b = ("runs/a/skills/experts_go_to_target.npz",), ("runs/b/skills/experts_go_to_target.npz",)
-    assert _labels(["library"], [a, b]) == {a: "library=a/skills/experts_go_to_target.npz",
-                                            b: "library=b/skills/experts_go_to_target.npz"}
+    assert _labels(["library"], [a, b]) == ["library=a/skills/experts_go_to_target.npz",
+                                            "library=b/skills/experts_go_to_target.npz"]
     c = ("other/experts_go_to_target.npz",)
-    assert _labels(["library"], [a, c])[a] == "library=skills/experts_go_to_target.npz"  # two parts suffice
+    assert _labels(["library"], [a, c, a])[0] == "library=skills/experts_go_to_target.npz"  # two parts suffice
+    assert _labels(["library"], [("a/b.npz",), ("./a/b.npz",)]) == ["library=a/b.npz", "library=./a/b.npz"]
+    assert _labels(["fragment_len"], [(float("nan"),), (3.0,)]) == ["fragment_len=nan", "fragment_len=3.0"]
 
 
 def test_a_figure_of_several_dirs_is_titled_by_their_common_folder(tmp_path):

@@ -485,6 +485,17 @@ def test_the_offline_conversion_takes_in_clips_added_to_the_folder_since(tmp_pat
         assert f["CMU_016_41"].attrs["mark"] == 1
     assert sorted(p.name for p in out.parent.iterdir()) == ["cmu_2019.h5", "cmu_2019.h5.lock"]  # no partial left
 
+    (src / "bvh/16/walk.bvh").write_text("not a CMU <subject>_<trial> name")  # cannot be converted:
+    assert source.find_mocap_file(None) == out and len(source.clip_lengths(out)) == 2  # the usable file stays
+    (src / "bvh/16/walk.bvh").unlink()
+    out.write_bytes(b"truncated")                                              # unreadable: made again
+    assert source.find_mocap_file(None) == out and len(source.clip_lengths(out)) == 2
+    other = tmp_path / "elsewhere"
+    shutil.copytree(src, other)
+    monkeypatch.setattr(source, "SHARED_CLIPS", other)  # a conversion of another folder is not ours to extend
+    shutil.copy(CMU / "bvh/35/35_17.bvh", other / "bvh/16")
+    assert source.find_mocap_file(None) == out and "CMU_035_17" not in source.clip_lengths(out)
+
 
 @needs_mocap
 def test_compute_features_defaults_and_its_missing_joints_error(poser):

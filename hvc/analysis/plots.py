@@ -34,15 +34,23 @@ def _label(keys: Sequence[str], values, depth: int = 2) -> str:
     return ", ".join(parts) or "all runs"
 
 
-def _labels(keys: Sequence[str], arms: Sequence) -> dict:
-    """{arm: label}, file paths given as many trailing parts as it takes to tell the arms apart
-    (two libraries both named experts_go_to_target.npz in folders of the same name)."""
+def _labels(keys: Sequence[str], arms: Sequence) -> list[str]:
+    """A label per arm (in order; an arm may repeat), file paths given as many trailing parts as
+    it takes to tell the arms apart (two libraries both named experts_go_to_target.npz in
+    folders of the same name), or as given when no number of parts does."""
+    unique = {}
+    for arm in arms:  # keyed by text, since a NaN value never equals itself
+        unique.setdefault(tuple(map(str, _key(arm))), _key(arm))
     depth = 2
     while True:
-        labels = {arm: _label(keys, arm, depth) for arm in arms}
-        if len(set(labels.values())) == len(labels) or labels == {arm: _label(keys, arm, depth + 1) for arm in arms}:
-            return labels
+        labels = {k: _label(keys, arm, depth) for k, arm in unique.items()}
+        if len(set(labels.values())) == len(labels):
+            break
+        if labels == {k: _label(keys, arm, depth + 1) for k, arm in unique.items()}:  # no deeper part tells
+            labels = {k: ", ".join(f"{key}={v}" for key, v in zip(keys, arm)) for k, arm in unique.items()}
+            break
         depth += 1
+    return [labels[tuple(map(str, _key(arm)))] for arm in arms]
 
 
 def _panels(facet: str | None, frame: pd.DataFrame, width: float = 4.2, height: float = 3.4):
@@ -65,7 +73,7 @@ def plot_curves(curves: pd.DataFrame, by: Sequence[str] = (), facet: str | None 
     fig, names, axes = _panels(facet, curves)
     arms = [_key(a) for a in curves.groupby(by, sort=True).groups] if by else [()]
     colours = {arm: f"C{i % 10}" for i, arm in enumerate(arms)}
-    labels = _labels(by, arms)
+    labels = dict(zip(arms, _labels(by, arms)))
     for name, ax in zip(names, axes):
         panel = curves[curves[facet] == name] if facet else curves
         for arm, c in (panel.groupby(by, sort=True) if by else [((), panel)]):
@@ -104,10 +112,10 @@ def plot_final(table: pd.DataFrame, by: Sequence[str], facet: str | None = None,
     """Per arm: the IQM of final returns with its 95% bootstrap CI, one panel per facet."""
     by = [b for b in by if b != facet]
     fig, names, axes = _panels(facet, table, width=max(3.0, 0.7 * len(table) + 1.5), height=3.2)
-    names_of = _labels(by, list(dict.fromkeys(_key(tuple(r[b] for b in by)) for _, r in table.iterrows())))
+    names_of = pd.Series(_labels(by, [tuple(r[b] for b in by) for _, r in table.iterrows()]), index=table.index)
     for name, ax in zip(names, axes):
         panel = table[table[facet] == name] if facet else table
-        labels = [names_of[_key(tuple(r[b] for b in by))] for _, r in panel.iterrows()]
+        labels = list(names_of[panel.index])
         pos = np.arange(len(panel))
         ax.errorbar(pos, panel.iqm, yerr=[panel.iqm - panel.ci_low, panel.ci_high - panel.iqm],
                     fmt="o", capsize=4)

@@ -24,13 +24,16 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 # The offline CMU clips: ../shared/mocap next to the checkout, or $HVC_SHARED_MOCAP.
 SHARED_CLIPS = Path(os.environ.get("HVC_SHARED_MOCAP", REPO_ROOT.parent / "shared" / "mocap")) / "cmu"
 DM_CONTROL_FILES = {"2019": "cmu_2019_08756c01.h5", "2020": "cmu_2020_dfe3e9e0.h5"}
+MIRROR_ATTR = "hvc_shared_folder"  # stamped on our conversion of the shared clips: the folder it mirrors
 
 
 def converted_file(model_version: str) -> Path:
     return REPO_ROOT / "outputs" / "mocap" / f"cmu_{model_version}.h5"
 
 
-def find_mocap_file(explicit: str | None, model_version: str = "2019", convert_if_missing: bool = True) -> Path:
+def find_mocap_file(explicit: str | None, model_version: str = "2019", use_shared_clips: bool = True) -> Path:
+    """The mocap file a run uses (the search order above); `use_shared_clips`: make or extend our
+    conversion of the shared clips where no other file is found first."""
     if explicit:
         return check_mocap_file(Path(explicit).expanduser(), f"mocap_file={explicit}")
     candidates = []
@@ -42,7 +45,7 @@ def find_mocap_file(explicit: str | None, model_version: str = "2019", convert_i
     ours = converted_file(str(model_version))
     candidates.append(ours)
     for path in candidates:
-        if path == ours and convert_if_missing and SHARED_CLIPS.is_dir():
+        if path == ours and use_shared_clips and SHARED_CLIPS.is_dir():
             return update_conversion(SHARED_CLIPS, ours, str(model_version))
         if path.exists():
             return path
@@ -53,26 +56,62 @@ def find_mocap_file(explicit: str | None, model_version: str = "2019", convert_i
 
 
 def update_conversion(source: Path, out: Path, model_version: str) -> Path:
-    """`out`, our conversion of the clips under `source`: made on first use, and brought up to
-    date when clips have been added to `source` since (only those are converted). It is built
-    in a copy that then replaces `out` whole, under a lock, so jobs started together neither
-    convert twice nor read a half-written file."""
+    """`out`, our conversion of the clips under `source`: made on first use (or again when
+    unreadable), and extended when clips have been added to `source` since (only those are
+    converted). It is built in a copy that then replaces `out` whole, under a lock, so jobs
+    started together neither convert twice nor read a half-written file. A file that is not a
+    conversion of `source` (`stage=convert` of another folder, or at another dt) is left as it
+    is, and so is a usable one when the new clips cannot be converted (a warning says why)."""
+    try:
+        have = _mirrored(out, source)
+        if have is None or (have and not _clip_ids(source) - have):
+            return out  # nothing to do: no lock, so a read-only checkout works
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with open(out.with_name(out.name + ".lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            have = _mirrored(out, source)  # another job may have extended it meanwhile
+            if have is not None and (not have or _clip_ids(source) - have):
+                _convert_into(source, out, have, model_version)
+    except (OSError, ValueError) as error:  # a clip the converter cannot read, a folder we cannot write
+        try:
+            check_mocap_file(out)
+        except BadInputFile:
+            raise error from None  # nothing usable to fall back on
+        log.warning("kept %s as it is; the clips added to %s could not be converted: %s", out, source, error)
+    return out
+
+
+def _convert_into(source: Path, out: Path, have: set[str], model_version: str) -> None:
     from hvc.mocap.convert import convert_folder
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out.with_name(out.name + ".lock"), "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        have = set(clip_lengths(check_mocap_file(out))) if out.exists() else set()
-        if not have or _clip_ids(source) - have:
-            partial = out.with_name(out.name + ".partial")
-            if have:
-                shutil.copyfile(out, partial)
-            else:
-                partial.unlink(missing_ok=True)
-            log.info("converting the clips in %s that %s lacks", source, out)
-            convert_folder(str(source), str(partial), walker_version=model_version, skip=have)
-            os.replace(partial, out)
-    return out
+    partial = out.with_name(out.name + ".partial")
+    if have:
+        shutil.copyfile(out, partial)
+    else:
+        partial.unlink(missing_ok=True)
+    log.info("converting the clips in %s that %s lacks", source, out)
+    convert_folder(str(source), str(partial), walker_version=model_version, skip=have)
+    with h5py.File(partial, "a") as f:
+        f.attrs[MIRROR_ATTR] = str(source.resolve())
+    os.replace(partial, out)
+
+
+def _mirrored(out: Path, source: Path) -> set[str] | None:
+    """The clip ids of `out` when it is our conversion of `source` (empty: absent or
+    unreadable, to be made); None when it is another file. Conversions made before files were
+    stamped with their folder count as ours when their clips are the folder's, at dt 0.03."""
+    if not out.exists():
+        return set()
+    try:
+        with h5py.File(out, "r") as f:
+            ids, folder = set(f.keys()), f.attrs.get(MIRROR_ATTR)
+            dts = {float(g.attrs.get("dt", 0.0)) for g in f.values()}
+    except OSError as error:
+        log.warning("%s is unreadable (%s); converting %s into it again", out, error, source)
+        return set()
+    if folder is not None:
+        return ids if str(folder) == str(source.resolve()) else None
+    return ids if ids <= _clip_ids(source) and dts <= {0.03} else None
 
 
 def _clip_ids(source: Path) -> set[str]:
