@@ -63,14 +63,15 @@ def update_conversion(source: Path, out: Path, model_version: str) -> Path:
     conversion of `source` (`stage=convert` of another folder, or at another dt) is left as it
     is, and so is a usable one when the new clips cannot be converted (a warning says why)."""
     try:
-        have = _mirrored(out, source)
-        if have is None or (have and not _clip_ids(source) - have):
+        wanted = _clip_ids(source)  # the folder scanned once per call
+        have = _mirrored(out, source, wanted)
+        if have is None or (have and not wanted - have):
             return out  # nothing to do: no lock, so a read-only checkout works
         out.parent.mkdir(parents=True, exist_ok=True)
         with open(out.with_name(out.name + ".lock"), "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
-            have = _mirrored(out, source)  # another job may have extended it meanwhile
-            if have is not None and (not have or _clip_ids(source) - have):
+            have = _mirrored(out, source, wanted)  # another job may have extended it meanwhile
+            if have is not None and (not have or wanted - have):
                 _convert_into(source, out, have, model_version)
     except (OSError, ValueError) as error:  # a clip the converter cannot read, a folder we cannot write
         try:
@@ -96,10 +97,11 @@ def _convert_into(source: Path, out: Path, have: set[str], model_version: str) -
     os.replace(partial, out)
 
 
-def _mirrored(out: Path, source: Path) -> set[str] | None:
+def _mirrored(out: Path, source: Path, wanted: set[str]) -> set[str] | None:
     """The clip ids of `out` when it is our conversion of `source` (empty: absent or
     unreadable, to be made); None when it is another file. Conversions made before files were
-    stamped with their folder count as ours when their clips are the folder's, at dt 0.03."""
+    stamped with their folder count as ours when their clips are among `wanted` (the folder's),
+    at dt 0.03."""
     if not out.exists():
         return set()
     try:
@@ -111,7 +113,7 @@ def _mirrored(out: Path, source: Path) -> set[str] | None:
         return set()
     if folder is not None:
         return ids if str(folder) == str(source.resolve()) else None
-    return ids if ids <= _clip_ids(source) and dts <= {0.03} else None
+    return ids if ids <= wanted and dts <= {0.03} else None
 
 
 def _clip_ids(source: Path) -> set[str]:
