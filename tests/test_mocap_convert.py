@@ -497,6 +497,47 @@ def test_the_offline_conversion_takes_in_clips_added_to_the_folder_since(tmp_pat
     assert source.find_mocap_file(None) == out and "CMU_035_17" not in source.clip_lengths(out)
 
 
+def _convert_logged(log_file, real):
+    def convert_folder(*args, **kwargs):
+        with open(log_file, "a") as f:
+            f.write("converted\n")
+        import time
+
+        time.sleep(0.5)  # the second job arrives while the first converts
+        return real(*args, **kwargs)
+    return convert_folder
+
+
+@needs_mocap
+def test_jobs_started_together_convert_the_new_clips_once(tmp_path, monkeypatch):
+    """Sweep jobs start at once on a machine that has not converted the new clips: one converts
+    them under the lock and the others wait and find them done, none converts again or reads a
+    half-written file."""
+    import multiprocessing
+    import shutil
+
+    from hvc.mocap import source
+
+    src = tmp_path / "cmu"
+    (src / "asf").mkdir(parents=True)
+    shutil.copy(CMU / "asf" / "02.asf", src / "asf")
+    (src / "bvh" / "16").mkdir(parents=True)
+    shutil.copy(CMU / "bvh/16/16_41.bvh", src / "bvh/16")
+    out = tmp_path / "cmu_2019.h5"
+    log_file = tmp_path / "conversions.log"
+    monkeypatch.setattr(convert, "convert_folder", _convert_logged(log_file, convert.convert_folder))
+    jobs = [multiprocessing.get_context("fork").Process(target=source.update_conversion, args=(src, out, "2019"))
+            for _ in range(3)]
+    for job in jobs:
+        job.start()
+    for job in jobs:
+        job.join(timeout=120)
+    assert [job.exitcode for job in jobs] == [0, 0, 0]
+    assert log_file.read_text() == "converted\n"
+    assert source.clip_lengths(out) == {"CMU_016_41": 45}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cmu", "cmu_2019.h5", "cmu_2019.h5.lock", "conversions.log"]
+
+
 @needs_mocap
 def test_compute_features_defaults_and_its_missing_joints_error(poser):
     """dt 0.03, central velocities, a levelled floor and 2 cm of allowed penetration by default;
