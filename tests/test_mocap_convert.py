@@ -497,19 +497,27 @@ def test_the_offline_conversion_takes_in_clips_added_to_the_folder_since(tmp_pat
     assert source.find_mocap_file(None) == out and "CMU_035_17" not in source.clip_lengths(out)
 
 
-def _convert_logged(log_file, real):
+def _update_logging_conversions(src, out, log_file):
+    """One job of the test below, in its own (spawned) process: update_conversion, with each
+    conversion logged and slowed so that the other jobs arrive while it runs."""
+    import time
+
+    from hvc.mocap import source
+
+    real = convert.convert_folder
+
     def convert_folder(*args, **kwargs):
         with open(log_file, "a") as f:
             f.write("converted\n")
-        import time
-
-        time.sleep(0.5)  # the second job arrives while the first converts
+        time.sleep(0.5)
         return real(*args, **kwargs)
-    return convert_folder
+
+    convert.convert_folder = convert_folder
+    source.update_conversion(src, out, "2019")
 
 
 @needs_mocap
-def test_jobs_started_together_convert_the_new_clips_once(tmp_path, monkeypatch):
+def test_jobs_started_together_convert_the_new_clips_once(tmp_path):
     """Sweep jobs start at once on a machine that has not converted the new clips: one converts
     them under the lock and the others wait and find them done, none converts again or reads a
     half-written file."""
@@ -525,8 +533,7 @@ def test_jobs_started_together_convert_the_new_clips_once(tmp_path, monkeypatch)
     shutil.copy(CMU / "bvh/16/16_41.bvh", src / "bvh/16")
     out = tmp_path / "cmu_2019.h5"
     log_file = tmp_path / "conversions.log"
-    monkeypatch.setattr(convert, "convert_folder", _convert_logged(log_file, convert.convert_folder))
-    jobs = [multiprocessing.get_context("fork").Process(target=source.update_conversion, args=(src, out, "2019"))
+    jobs = [multiprocessing.get_context("spawn").Process(target=_update_logging_conversions, args=(src, out, log_file))
             for _ in range(3)]
     for job in jobs:
         job.start()
