@@ -250,3 +250,63 @@ def test_plot_sweep_draws_one_curve_per_arm_with_bands(sweep, tmp_path, capsys):
     assert "n_failed" in table and "iqm" in table
     with pytest.raises(SystemExit):
         plot_sweep.main([str(sweep), "--by", "controler", "-o", str(tmp_path / "x.png")])
+
+
+def make_evaluation(root: Path, name: str, library: str | None, rewards: dict, survival: tuple | None) -> Path:
+    """An evaluate run dir as hvc-run writes it: each clip's scores, then the composability
+    measures, all at step 0 and one wall time after another."""
+    run = root / name
+    run.mkdir(parents=True)
+    (run / "overrides.yaml").write_text(yaml.safe_dump(["stage=evaluate"] + ([f"library={library}"] if library else [])))
+    (run / "config_resolved.yaml").write_text(yaml.safe_dump({"stage": "evaluate", "library": library}))
+    rows = []
+    for i, (clip, reward) in enumerate(rewards.items()):
+        rows += [(0, 0, 10.0 * (i + 1), f"reward/{clip}", reward), (0, 0, 10.0 * (i + 1), f"completion/{clip}", 1.0)]
+    if survival:
+        keys = ("compose_mean_steps", "compose_median_steps", "compose_fall_rate")
+        rows += [(0, 0, 100.0, k, v) for k, v in zip(keys, (*survival, 1.0))]
+        rows += [(0, 0, 200.0, "compose_held_mean_steps", 2 * survival[0]),
+                 (0, 0, 200.0, "compose_held_median_steps", 2 * survival[1])]
+    pd.DataFrame(rows, columns=["env_steps", "learner_steps", "wall_time", "key", "value"]).to_csv(
+        run / "metrics.csv", index=False)
+    (run / "summary.json").write_text("{}")
+    return run
+
+
+def test_an_evaluate_runs_rows_all_at_step_0_are_all_read(tmp_path):
+    """Each clip's scores are logged at step 0 one after another: none supersedes another (a
+    resume is a step or the wall time going back), and a final evaluation logged at a training
+    run's last step keeps that step's training rows."""
+    make_evaluation(tmp_path / "ev", "a", None, {"CMU_1": 0.5, "CMU_2": 0.25}, (30.0, 28.0))
+    assert len(load_runs([tmp_path / "ev"])) == 9
+    run = make_run(tmp_path / "tr", "r", {"seed": 0}, lambda t: 1.0, steps=100)
+    pd.DataFrame([(100, 400, 150.0, "eval_reward", 0.4)]).to_csv(run / "metrics.csv", mode="a", header=False, index=False)
+    last = load_runs([tmp_path / "tr"]).query("env_steps == 100")
+    assert sorted(last.key) == ["episode_return", "episodes", "eval_reward", "loss"]
+
+
+def test_compare_libraries_puts_each_librarys_clip_scores_and_survival_in_a_row(tmp_path, capsys):
+    import compare_libraries
+
+    from hvc.analysis.evaluations import evaluation_table
+
+    make_evaluation(tmp_path, "0", None, {"CMU_131_09": 0.66, "CMU_009_06": 0.47}, (27.9, 26.0))
+    make_evaluation(tmp_path, "1", "x/cut_ins.npz", {"CMU_131_09": 0.55, "CMU_009_06": 0.27}, (33.7, 34.0))
+    make_evaluation(tmp_path, "2", "y/other_set.npz", {"CMU_016_24": 0.36}, None)
+    table = evaluation_table(load_runs([tmp_path]))
+    assert list(table.columns) == ["library", "CMU_131_09", "CMU_009_06", "CMU_016_24", "compose_mean_steps",
+                                   "compose_median_steps", "compose_held_mean_steps", "compose_held_median_steps"]
+    assert table.library.tolist() == ["default", "x/cut_ins.npz", "y/other_set.npz"]
+    assert table.CMU_009_06.tolist()[:2] == [0.47, 0.27] and math.isnan(table.CMU_009_06[2])
+    assert table.compose_held_median_steps.tolist()[:2] == [52.0, 68.0] and math.isnan(table.compose_mean_steps[2])
+    completion = evaluation_table(load_runs([tmp_path]), score="completion")
+    assert completion.CMU_131_09.tolist()[:2] == [1.0, 1.0]
+
+    compare_libraries.main([str(tmp_path)])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("| library | CMU_131_09 |") and lines[1].count("---") == 8
+    assert lines[3] == "| x/cut_ins.npz | 0.55 | 0.27 |  | 33.7 | 34 | 67.4 | 68 |"
+    with pytest.raises(SystemExit):
+        compare_libraries.main([str(tmp_path), "--score", "speed"])    # no speed/<clip> rows
+    with pytest.raises(SystemExit):
+        compare_libraries.main([str(tmp_path), "--by", "fragment_len"])  # not an option of these runs

@@ -89,10 +89,13 @@ def read_metrics(run: Path) -> pd.DataFrame:
 def last_timeline(metrics: pd.DataFrame) -> pd.DataFrame:
     """A run resumed from a checkpoint logs again from the checkpoint's step: the rows it
     superseded (logged at or after a step some later row went back to) are dropped, so each
-    episode counts once and env steps increase."""
+    episode counts once and env steps increase. Rows at one step belong together until the
+    wall time goes back (a resume): a stage=evaluate run logs every clip at step 0, and a
+    final evaluation shares the last training row's step."""
     if metrics.empty:
         return metrics
-    event = (metrics[["env_steps", "learner_steps", "wall_time"]].diff().abs().sum(axis=1) != 0).cumsum()
+    steps_changed = metrics[["env_steps", "learner_steps"]].diff().abs().sum(axis=1) != 0
+    event = (steps_changed | (metrics.wall_time.diff() < 0)).cumsum()
     steps = metrics.groupby(event).env_steps.first().astype(float)
     later_min = steps[::-1].cummin()[::-1].shift(-1, fill_value=float("inf"))
     keep = steps.index[steps < later_min]
