@@ -25,13 +25,21 @@ def main(argv: list[str] | None = None) -> str:
     args = parser.parse_args(argv)
     try:
         frame = load_runs(args.dirs)
-        by = [k for k in args.by.split(",") if k] if args.by is not None else list(frame.attrs["factors"])
+        by = [k for k in args.by.split(",") if k] if args.by is not None else _readable_factors(frame)
         table = evaluation_table(frame, by=by, score=args.score)
     except (FileNotFoundError, ValueError) as error:
         parser.error(str(error))
     text = markdown(table)
     print(text)
     return text
+
+
+def _readable_factors(frame) -> list[str]:
+    """The options that differ between the runs, but for whole config sections (such as
+    `clips.entries`), which would print as long blobs: each row is told apart by the run dir
+    then."""
+    return [k for k in frame.attrs["factors"]
+            if not frame[k].dropna().map(lambda v: isinstance(v, (dict, list))).any()]
 
 
 if __name__ == "__main__":

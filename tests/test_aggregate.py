@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from hvc.analysis import curves, final_scores, iqm_table, load_runs
-from hvc.analysis.runs import run_status
+from hvc.analysis.runs import last_timeline, run_status
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
 
@@ -285,6 +285,18 @@ def test_an_evaluate_runs_rows_all_at_step_0_are_all_read(tmp_path):
     assert sorted(last.key) == ["episode_return", "episodes", "eval_reward", "loss"]
 
 
+def test_a_step_logged_again_supersedes_the_first_time_even_at_a_later_wall_time(tmp_path):
+    """A run resumed from its step-0 checkpoint (wall time carried on) that logged its random
+    return again, and an old file's resume whose wall time went back: the later rows count."""
+    rows = [(0, 0, 1.0, "random_return", 1.1), (0, 0, 9.0, "random_return", 2.25), (10, 40, 12.0, "episodes", 1),
+            (10, 40, 12.0, "episode_return", 3.0), (20, 80, 20.0, "episodes", 2), (20, 80, 20.0, "episode_return", 4.0),
+            (20, 80, 15.0, "episodes", 2), (20, 80, 15.0, "episode_return", 5.0)]
+    frame = pd.DataFrame(rows, columns=["env_steps", "learner_steps", "wall_time", "key", "value"])
+    kept = last_timeline(frame)
+    assert kept[kept.key == "random_return"].value.tolist() == [2.25]
+    assert kept[kept.key == "episode_return"].value.tolist() == [3.0, 5.0]
+
+
 def test_compare_libraries_puts_each_librarys_clip_scores_and_survival_in_a_row(tmp_path, capsys):
     import compare_libraries
 
@@ -310,3 +322,18 @@ def test_compare_libraries_puts_each_librarys_clip_scores_and_survival_in_a_row(
         compare_libraries.main([str(tmp_path), "--score", "speed"])    # no speed/<clip> rows
     with pytest.raises(SystemExit):
         compare_libraries.main([str(tmp_path), "--by", "fragment_len"])  # not an option of these runs
+
+
+def test_evaluation_rows_keep_the_sweeps_order_and_are_told_apart_when_labelled_alike(tmp_path):
+    from hvc.analysis.evaluations import evaluation_table, markdown
+
+    for job, library in ((0, "a.npz"), (2, "b.npz"), (10, "a.npz")):
+        make_evaluation(tmp_path, str(job), library, {"CMU_1": job / 10}, (20.0, 20.0))
+    (tmp_path / "10" / "summary.json").unlink()   # killed before the end
+    for job, library in (("0", "a.npz"), ("2", "b.npz"), ("10", "a.npz")):  # a float option: shown as given
+        (tmp_path / job / "overrides.yaml").write_text(
+            yaml.safe_dump(["stage=evaluate", f"library={library}", "lowlevel.lr=0.0001"]))
+    table = evaluation_table(load_runs([tmp_path]), by=["library", "lowlevel.lr"])
+    assert [Path(r).name for r in table.run] == ["0", "2", "10"]
+    assert table.status.tolist() == ["finished", "finished", "stopped"] and table.CMU_1.tolist() == [0.0, 0.2, 1.0]
+    assert markdown(table).splitlines()[2].endswith("| a.npz | 0.0001 | finished | 0.00 | 20 | 20 | 40 | 40 |")

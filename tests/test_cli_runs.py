@@ -151,6 +151,29 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     assert len(commands) == 2 and "total_steps=80" in commands[0] and f"resume={run_dir}" in commands[1]
 
 
+def test_a_run_resumed_from_its_first_checkpoint_logs_its_random_return_once(tmp_path):
+    """The first checkpoint is taken at env step 0, after the random episodes: a run killed
+    (SIGKILL: no checkpoint of its own) before its next one goes on from it, and does not play
+    (and log) the random episodes again."""
+    import time
+
+    import torch
+
+    common = ["body=rolling_ball", "controller=end_to_end", "num_envs=1", "hl.random_episodes=1",
+              "hl.min_replay_unrolls=2", "algorithm.batch_size=4", "log_every=10", "hydra.run.dir=run"]
+    proc = subprocess.Popen([sys.executable, "-m", "hvc.cli", "total_steps=10000000", *common], cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    checkpoint, deadline = tmp_path / "run" / "checkpoint.pt", time.monotonic() + 300
+    while time.monotonic() < deadline and not checkpoint.exists():
+        time.sleep(0.2)
+    proc.kill()
+    proc.wait(timeout=60)
+    assert torch.load(checkpoint, weights_only=True)["counters"]["env_steps"] == 0
+    _run("total_steps=40", "resume=run", *common[:-1], cwd=tmp_path)
+    metrics = pd.read_csv(tmp_path / "run" / "metrics.csv")
+    assert (metrics.key == "random_return").sum() == 1 and metrics.env_steps.max() >= 40
+
+
 def test_metrics_logger_writes_csv_rows_and_tensorboard_events(tmp_path):
     from hvc.io.metrics import MetricsLogger
 

@@ -497,9 +497,10 @@ def test_the_offline_conversion_takes_in_clips_added_to_the_folder_since(tmp_pat
     assert source.find_mocap_file(None) == out and "CMU_035_17" not in source.clip_lengths(out)
 
 
-def _update_logging_conversions(src, out, log_file):
-    """One job of the test below, in its own (spawned) process: update_conversion, with each
-    conversion logged and slowed so that the other jobs arrive while it runs."""
+def _update_logging_conversions(src, out, log_file, start):
+    """One job of the test below, in its own (spawned) process: update_conversion once every
+    job is ready (`start`, a barrier), with each conversion logged and slowed so that the
+    other jobs arrive while it runs."""
     import time
 
     from hvc.mocap import source
@@ -513,6 +514,7 @@ def _update_logging_conversions(src, out, log_file):
         return real(*args, **kwargs)
 
     convert.convert_folder = convert_folder
+    start.wait(timeout=120)
     source.update_conversion(src, out, "2019")
 
 
@@ -533,8 +535,9 @@ def test_jobs_started_together_convert_the_new_clips_once(tmp_path):
     shutil.copy(CMU / "bvh/16/16_41.bvh", src / "bvh/16")
     out = tmp_path / "cmu_2019.h5"
     log_file = tmp_path / "conversions.log"
-    jobs = [multiprocessing.get_context("spawn").Process(target=_update_logging_conversions, args=(src, out, log_file))
-            for _ in range(3)]
+    spawn = multiprocessing.get_context("spawn")
+    start = spawn.Barrier(3)
+    jobs = [spawn.Process(target=_update_logging_conversions, args=(src, out, log_file, start)) for _ in range(3)]
     for job in jobs:
         job.start()
     for job in jobs:

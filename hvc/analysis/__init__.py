@@ -1,7 +1,8 @@
 """From run dirs to the paper's figures: load runs into one tidy frame (runs.py), per-episode
 returns (returns.py), curves of the mean and its standard error over seeds (curves.py),
 final performance as IQM with bootstrap confidence intervals (final.py), their plots
-(plots.py), and evaluate runs side by side (evaluations.py). Scripts and notebooks in analysis/ are thin layers over these."""
+(plots.py), and evaluate runs side by side (evaluations.py). Scripts and notebooks in
+analysis/ are thin layers over these."""
 from hvc.analysis.curves import curves
 from hvc.analysis.final import final_scores, iqm_table
 from hvc.analysis.returns import episode_returns, mean_return

@@ -3,6 +3,7 @@ tracking score per clip and its random-switch survival, so libraries trained wit
 options compare in one table (issue 23's goals are per clip and per library)."""
 from __future__ import annotations
 
+import re
 from typing import Sequence
 
 import pandas as pd
@@ -12,37 +13,51 @@ SURVIVAL = ("compose_mean_steps", "compose_median_steps", "compose_held_mean_ste
 
 
 def evaluation_table(frame: pd.DataFrame, by: Sequence[str] = ("library",), score: str = "reward") -> pd.DataFrame:
-    """From `load_runs` of evaluate runs: per run (sorted), the `by` options (none: the run
-    dir), `score` (reward, completion, fall_rate, ...) of each clip it evaluated (a column per
-    clip id, in first-seen order) and the survival columns it logged. A run lacking one
-    (another clip set, no composability) has NaN there."""
+    """From `load_runs` of evaluate runs: per run (in the order of their dirs' names, numbers
+    read as numbers, so a sweep's jobs keep theirs), the `by` options naming it, `score`
+    (reward, completion, fall_rate, ...) of each clip it evaluated (a column per clip id, in
+    first-seen order) and the survival columns it logged; NaN where a run lacks one (another
+    clip set, no composability). The run dir is added where the `by` options name two runs
+    alike, and each run's status where one has not finished."""
     by = list(by) or ["run"]
     missing = [k for k in by if k not in frame.columns]
     if missing:
-        raise ValueError(f"no option {', '.join(missing)} in these runs; "
-                         f"they have: {', '.join(frame.attrs.get('factors', [])) or 'none that differ'}")
+        raise ValueError(f"no option {', '.join(missing)} in these runs; options that differ between them: "
+                         f"{', '.join(frame.attrs.get('factors', [])) or 'none'}")
     logged = frame.dropna(subset=["key"])
     clips = [k for k in dict.fromkeys(logged.key) if k.startswith(f"{score}/")]
     if not clips:
         raise ValueError(f"no {score}/<clip> rows: are these stage=evaluate runs? (score={score!r})")
     columns = clips + [k for k in SURVIVAL if k in set(logged.key)]
     values = logged[logged.key.isin(columns)].pivot_table(index="run", columns="key", values="value", aggfunc="last")
-    labels = frame.groupby("run", sort=True)[[k for k in by if k != "run"]].first()
-    table = labels.join(values.reindex(columns=columns)).reset_index()
-    table = table[[*by, *columns]] if "run" in by else table[[*by, *columns]]
-    return table.rename(columns={c: c.removeprefix(f"{score}/") for c in clips})
+    runs = frame.groupby("run")[["status", *(k for k in by if k != "run")]].first()
+    runs = runs.loc[sorted(runs.index, key=_natural)]
+    labels = [k for k in by if k != "run"]
+    if "run" not in by and runs[labels].astype(str).duplicated(keep=False).any():
+        by = ["run", *by]
+    shown = by + (["status"] if (runs.status != "finished").any() else [])
+    table = runs.join(values.reindex(columns=columns)).reset_index()[[*shown, *columns]]
+    table = table.rename(columns={c: c.removeprefix(f"{score}/") for c in clips})
+    table.attrs["scores"] = [c.removeprefix(f"{score}/") for c in clips]  # which columns are clips (for markdown)
+    return table
 
 
 def markdown(table: pd.DataFrame, digits: int = 2) -> str:
-    """`table` as a markdown table: scores to `digits` decimals, steps to one (whole ones
-    without), NaN blank."""
+    """`table` (an `evaluation_table`) as a markdown table: clip scores to `digits` decimals,
+    survival steps to one (whole ones without), other columns as they are, NaN blank."""
+    scores = set(table.attrs.get("scores", []))
+
     def cell(column: str, value) -> str:
-        if not isinstance(value, float):
-            return str(value)
-        if pd.isna(value):
+        if isinstance(value, float) and pd.isna(value):
             return ""
-        return f"{value:.1f}".removesuffix(".0") if column in SURVIVAL else f"{value:.{digits}f}"
+        if column in SURVIVAL:
+            return f"{value:.1f}".removesuffix(".0")
+        return f"{value:.{digits}f}" if column in scores else str(value)
     lines = ["| " + " | ".join(map(str, table.columns)) + " |", "|" + " --- |" * len(table.columns)]
     lines += ["| " + " | ".join(cell(c, v) for c, v in zip(table.columns, row)) + " |"
               for row in table.itertuples(index=False)]
     return "\n".join(lines)
+
+
+def _natural(text: str) -> list:
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", str(text))]

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from hvc.analysis.runs import last_timeline
+from hvc.analysis.runs import last_timeline, log_events
 
 
 def episode_returns(metrics: pd.DataFrame) -> pd.DataFrame:
@@ -15,7 +15,7 @@ def episode_returns(metrics: pd.DataFrame) -> pd.DataFrame:
     m = last_timeline(metrics[metrics.key.isin(["episodes", "episode_return"])].reset_index(drop=True))
     if m.empty:
         return pd.DataFrame(columns=["env_steps", "learner_steps", "value", "n"])
-    row = (m[["env_steps", "learner_steps", "wall_time"]].diff().abs().sum(axis=1) != 0).cumsum()
+    row = log_events(m)
     rows = m.pivot_table(index=row, columns="key", values="value", sort=True)
     rows[["env_steps", "learner_steps"]] = m.groupby(row)[["env_steps", "learner_steps"]].first()
     rows["n"] = rows["episodes"].ffill().diff().fillna(rows["episodes"])

@@ -89,17 +89,26 @@ def read_metrics(run: Path) -> pd.DataFrame:
 def last_timeline(metrics: pd.DataFrame) -> pd.DataFrame:
     """A run resumed from a checkpoint logs again from the checkpoint's step: the rows it
     superseded (logged at or after a step some later row went back to) are dropped, so each
-    episode counts once and env steps increase. Rows at one step belong together until the
-    wall time goes back (a resume): a stage=evaluate run logs every clip at step 0, and a
-    final evaluation shares the last training row's step."""
+    episode counts once and env steps increase. Rows at one step belong together (a
+    stage=evaluate run logs every clip at step 0; a final evaluation shares the last training
+    row's step) until a key repeats or the wall time goes back: a resume logging that step again."""
     if metrics.empty:
         return metrics
-    steps_changed = metrics[["env_steps", "learner_steps"]].diff().abs().sum(axis=1) != 0
-    event = (steps_changed | (metrics.wall_time.diff() < 0)).cumsum()
+    event = log_events(metrics)
     steps = metrics.groupby(event).env_steps.first().astype(float)
     later_min = steps[::-1].cummin()[::-1].shift(-1, fill_value=float("inf"))
     keep = steps.index[steps < later_min]
     return metrics[event.isin(keep)].reset_index(drop=True)
+
+
+def log_events(metrics: pd.DataFrame) -> pd.Series:
+    """Per row, the number of the logging event it belongs to: a new one when the env or
+    learner step changes, the wall time goes back, or a key repeats at the same step."""
+    steps_changed = metrics[["env_steps", "learner_steps"]].diff().abs().sum(axis=1) != 0
+    by_step = (steps_changed | (metrics.wall_time.diff() < 0)).cumsum()
+    repeat = metrics.groupby([by_step, metrics.key], dropna=False).cumcount()  # 1: a key's second time there
+    within = repeat.groupby(by_step).cummax()
+    return (by_step.diff().ne(0) | within.diff().ne(0)).cumsum()
 
 
 def load_runs(paths: Iterable[str | Path], keys: Iterable[str] | None = None) -> pd.DataFrame:

@@ -181,7 +181,7 @@ def run_hl_training(cfg: DictConfig, run_dir: Path) -> dict:
     previous_sigterm = signal.signal(signal.SIGTERM, raise_interrupt)  # `kill` saves a checkpoint too
     try:
         with progress.closing():
-            if counters["env_steps"] == 0:
+            if state is None:  # a resume from the first checkpoint (step 0) has logged these already
                 if int(cfg.hl.random_episodes) > 0:
                     random_returns = acting.random_returns(int(cfg.hl.random_episodes), rng)
                     metrics.log(0, {"random_return": float(np.mean(random_returns))})
