@@ -30,15 +30,16 @@ def evaluation_table(frame: pd.DataFrame, by: Sequence[str] = ("library",), scor
         raise ValueError(f"no {score}/<clip> rows: are these stage=evaluate runs? (score={score!r})")
     columns = clips + [k for k in SURVIVAL if k in set(logged.key)]
     values = logged[logged.key.isin(columns)].pivot_table(index="run", columns="key", values="value", aggfunc="last")
-    runs = frame.groupby("run")[["status", *(k for k in by if k != "run")]].first()
-    runs = runs.loc[sorted(runs.index, key=_natural)]
     labels = [k for k in by if k != "run"]
+    runs = frame.groupby("run")[["status", *labels]].first()
+    runs = runs.loc[sorted(runs.index, key=_natural)]
     if "run" not in by and runs[labels].astype(str).duplicated(keep=False).any():
         by = ["run", *by]
     shown = by + (["status"] if (runs.status != "finished").any() else [])
     table = runs.join(values.reindex(columns=columns)).reset_index()[[*shown, *columns]]
-    table = table.rename(columns={c: c.removeprefix(f"{score}/") for c in clips})
-    table.attrs["scores"] = [c.removeprefix(f"{score}/") for c in clips]  # which columns are clips (for markdown)
+    names = {c: c.removeprefix(f"{score}/") for c in clips}
+    table = table.rename(columns=names)
+    table.attrs["scores"] = list(names.values())  # which columns are clips (for markdown)
     return table
 
 
