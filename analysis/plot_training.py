@@ -13,6 +13,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from hvc.analysis.returns import episode_returns
+from hvc.analysis.runs import last_timeline
 
 
 def plot(out: Path, run_dirs: list[Path], points: int = 60) -> Path:
@@ -25,7 +26,7 @@ def draw(run_dirs: list[Path], points: int = 60):
     the episodes in each row), so that long runs read as curves rather than spikes."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for run in run_dirs:
-        m = pd.read_csv(run if run.suffix in (".csv", ".gz") else run / "metrics.csv")
+        m = last_timeline(pd.read_csv(run if run.suffix in (".csv", ".gz") else run / "metrics.csv"))
         returns = episode_returns(m)
         label = run.name.removesuffix(".gz").removesuffix(".csv")
         window = max(10, len(returns) // points)

@@ -11,14 +11,13 @@ from plot_training import plot  # noqa: E402
 
 
 def _metrics():
-    rows = []
+    rows = [(0, 0, 0.0, "random_return", 1.0)]  # logged first, as hl_train does
     # row at 100 env steps: 3 short episodes with nothing; at 200: one long episode scoring 100;
     # at 300: no episode ended (no return logged)
     for env_steps, episodes, ret in ((100, 3, 0.0), (200, 4, 100.0), (300, 4, None)):
         rows.append((env_steps, env_steps * 10, 1.0, "episodes", episodes))
         if ret is not None:
             rows.append((env_steps, env_steps * 10, 1.0, "episode_return", ret))
-    rows.append((0, 0, 0.0, "random_return", 1.0))
     return pd.DataFrame(rows, columns=["env_steps", "learner_steps", "wall_time", "key", "value"])
 
 
@@ -72,3 +71,34 @@ def test_steering_plot_reads_the_evaluation_rows(tmp_path):
     (tmp_path / "metrics.csv").write_text("env_steps,learner_steps,wall_time,key,value\n0,0,1.0,eval_reward/x,0.3\n")
     with pytest.raises(SystemExit, match="no steering rows"):
         plot_steering(tmp_path, tmp_path / "t.png")
+
+
+def _resumed_rows(first, resumed, key):
+    """(env_steps, value) rows of one key, logged once, then again from a checkpoint."""
+    rows = [(steps, steps, float(wall), key, value) for wall, (steps, value) in enumerate(first + resumed)]
+    return pd.DataFrame(rows, columns=["env_steps", "learner_steps", "wall_time", "key", "value"])
+
+
+def test_an_experts_curve_drops_the_rows_its_resume_superseded(tmp_path):
+    from plot_lowlevel import load
+
+    expert = tmp_path / "experts" / "0_run_CMU_009_06"
+    expert.mkdir(parents=True)
+    # logged to 20000, resumed from the 10000 checkpoint, logging on an offset grid
+    _resumed_rows([(5000, 0.1), (10000, 0.2), (15000, 0.9), (20000, 0.9)], [(12500, 0.3), (17500, 0.4)],
+                  "step_reward").to_csv(expert / "metrics.csv", index=False)
+    table = load(tmp_path)["0_run_CMU_009_06"]
+    assert list(table.index) == [5000, 10000, 12500, 17500]
+    assert list(table.step_reward) == [0.1, 0.2, 0.3, 0.4]
+
+
+def test_a_run_resumed_from_its_first_checkpoint_draws_its_last_random_return(tmp_path):
+    from plot_training import draw
+
+    m = pd.concat([_resumed_rows([(0, 5.0)], [(0, 2.0)], "random_return"),
+                   _resumed_rows([(100, 1.0), (200, 1.0)], [], "episodes").assign(wall_time=[2.0, 3.0]),
+                   _resumed_rows([(100, 3.0), (200, 4.0)], [], "episode_return").assign(wall_time=[2.0, 3.0])])
+    m = m.sort_values(["wall_time", "key"], kind="stable")
+    m.to_csv(tmp_path / "metrics.csv", index=False)
+    random = draw([tmp_path]).axes[0].lines[1]
+    assert list(random.get_ydata()) == [2.0, 2.0]
