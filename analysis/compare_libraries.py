@@ -38,8 +38,7 @@ def _readable_factors(frame) -> list[str]:
     """The options that differ between the runs, but for whole config sections (such as
     `clips.entries`), which would print as long blobs: each row is told apart by the run dir
     then."""
-    return [k for k in frame.attrs["factors"]
-            if not frame[k].dropna().map(lambda v: isinstance(v, (dict, list))).any()]
+    return [k for k in frame.attrs["factors"] if k not in frame.attrs["sections"]]
 
 
 if __name__ == "__main__":

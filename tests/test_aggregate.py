@@ -324,6 +324,26 @@ def test_compare_libraries_puts_each_librarys_clip_scores_and_survival_in_a_row(
         compare_libraries.main([str(tmp_path), "--by", "fragment_len"])  # not an option of these runs
 
 
+def test_compare_libraries_leaves_out_options_that_are_whole_sections(tmp_path, capsys):
+    """Libraries evaluated on different `clips.entries` (a list of sections) are told apart by
+    the options that read as values; the lists would print as JSON blobs."""
+    import compare_libraries
+
+    for name, library, clip in (("a", "a.npz", "CMU_009_06"), ("b", "b.npz", "CMU_131_09")):
+        run = make_evaluation(tmp_path, name, library, {clip: 0.4}, (30.0, 28.5))
+        entries = [{"id": clip, "behaviour": "run", "start": 0, "end": 38}]
+        (run / "overrides.yaml").write_text(yaml.safe_dump(
+            ["stage=evaluate", f"library={library}", f"clips.entries=[{{id:{clip},behaviour:run,start:0,end:38}}]"]))
+        (run / "config_resolved.yaml").write_text(yaml.safe_dump(
+            {"stage": "evaluate", "library": library, "clips": {"name": "go_to_target", "entries": entries}}))
+    frame = load_runs([tmp_path])
+    assert frame.attrs["factors"] == ["library", "clips.entries"] and frame.attrs["sections"] == ["clips.entries"]
+    compare_libraries.main([str(tmp_path)])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("| library | CMU_009_06 | CMU_131_09 |")
+    assert lines[2] == "| a.npz | 0.40 |  | 30 | 28.5 | 60 | 57 |"
+
+
 def test_evaluation_rows_keep_the_sweeps_order_and_are_told_apart_when_labelled_alike(tmp_path):
     from hvc.analysis.evaluations import evaluation_table, markdown
 

@@ -116,7 +116,9 @@ def load_runs(paths: Iterable[str | Path], keys: Iterable[str] | None = None) ->
     (NaN where a run lacks it), then env_steps, learner_steps, wall_time, key, value (`keys`:
     only those metrics). A run without metrics rows (failed before any) keeps one row with
     NaN metrics, so it shows in the frame. `frame.attrs["factors"]` lists the options whose
-    values differ between the runs (the swept keys), execution options left out."""
+    values differ between the runs (the swept keys), execution options left out; and
+    `frame.attrs["sections"]` those whose values are whole config sections or lists (such as
+    `clips.entries`), each one JSON string."""
     frames, options = [], {}
     for run in find_runs(paths):
         metrics = read_metrics(run)
@@ -130,7 +132,7 @@ def load_runs(paths: Iterable[str | Path], keys: Iterable[str] | None = None) ->
         frames.append(metrics)
     if not frames:
         raise FileNotFoundError(f"no runs under {', '.join(map(str, paths))}")
-    _fill_defaults(options)
+    sections = _fill_defaults(options)
     table = pd.DataFrame.from_dict(options, orient="index")
     frame = pd.concat(frames, ignore_index=True)
     frame = frame.join(table, on="run")
@@ -138,6 +140,7 @@ def load_runs(paths: Iterable[str | Path], keys: Iterable[str] | None = None) ->
     frame = frame[[c for c in columns if c in frame.columns]]
     frame.attrs["factors"] = [c for c in table.columns
                               if not is_execution(c) and table[c].dropna().astype(str).nunique() > 1]
+    frame.attrs["sections"] = sorted(sections)
     return frame
 
 
@@ -145,24 +148,30 @@ def is_execution(key: str) -> bool:
     return any(key == e or key.startswith(e + ".") for e in EXECUTION)
 
 
-def _fill_defaults(options: dict[str, dict]) -> None:
+def _fill_defaults(options: dict[str, dict]) -> set[str]:
     """The options some runs gave, for every run, as its resolved config holds them (Hydra's
     parse, the same for a given and a default value): `default` where null, `absent` where
     neither the config nor the run has it (a `~key` deletion, a `+key` another run added); a
     section or list as one string. A run without a resolved config (failed before writing one)
-    keeps what it gave."""
+    keeps what it gave. Returns the keys that held such a section or list in some run."""
     keys = {k for given in options.values() for k in given if not is_execution(k)} - set(CORE)
+    sections = set()
     for run, given in options.items():
         config = Path(run) / "config_resolved.yaml"
         if not config.is_file():
-            given.update({k: _factor_value(v) for k, v in given.items() if isinstance(v, (dict, list))})
+            blobs = {k: v for k, v in given.items() if _is_section(v)}
+            given.update({k: _factor_value(v) for k, v in blobs.items()})
+            sections |= blobs.keys()
             continue
         cfg = yaml.safe_load(config.read_text()) or {}
         for key in keys:
             node = _lookup(cfg, key.split("."))
             if node is _ABSENT and given.get(key) is not None:  # given, but not a config key (a hand-made run)
                 node = given[key]
+            if _is_section(node):
+                sections.add(key)
             given[key] = _factor_value(node)
+    return sections
 
 
 _ABSENT = object()
@@ -174,6 +183,11 @@ def _lookup(cfg: dict, parts) -> object:
     for part in parts:
         node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
     return node
+
+
+def _is_section(value) -> bool:
+    """A value `_factor_value` turns into a JSON string: a list, or a section without a name."""
+    return isinstance(value, list) or (isinstance(value, dict) and not isinstance(value.get("name"), str))
 
 
 def _factor_value(value):
