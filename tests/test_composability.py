@@ -151,5 +151,21 @@ def test_evaluate_prints_and_logs_both_drivers_for_fragments(tmp_path, capsys):
     assert "compose controller=fragments clips=go_to_target episodes=2" in out
     assert "compose_held controller=fragments clips=go_to_target episodes=2" in out
     assert not scores["hold"] and scores["held"]["hold"] and scores["held"]["episodes"] == 2
-    keys = set(pd.read_csv(tmp_path / "metrics.csv").key)
-    assert {"compose_median_steps", "compose_held_median_steps", "compose_held_fall_rate"} <= keys
+    logged = pd.read_csv(tmp_path / "metrics.csv").set_index("key").value
+    assert {"compose_median_steps", "compose_held_median_steps", "compose_held_fall_rate"} <= set(logged.index)
+
+
+def test_evaluate_prints_a_median_between_two_lengths_as_logged(tmp_path, capsys, monkeypatch):
+    import pandas as pd
+
+    from hvc.io.metrics import MetricsLogger
+    from hvc.runtime import composability as composability_module, evaluate_stage
+
+    scores = {"episodes": 2, "mean_steps": 58.5, "median_steps": 58.5, "fall_rate": 1.0, "cap": 1000,
+              "horizon": 33, "switches": {}, "hold": False}
+    monkeypatch.setattr(composability_module, "cold_switching", lambda *args, hold=False: dict(scores, hold=hold))
+    with MetricsLogger(tmp_path / "metrics.csv") as metrics:
+        evaluate_stage.composability(compose(["stage=evaluate", "episodes=2"]), metrics)
+    out = capsys.readouterr().out
+    assert "mean_steps=58.5 median_steps=58.5 " in out  # not rounded to the even 58
+    assert (pd.read_csv(tmp_path / "metrics.csv").set_index("key").value["compose_median_steps"] == 58.5)

@@ -141,7 +141,7 @@ def composability(cfg: DictConfig, metrics: MetricsLogger) -> dict | None:
             print(f"compose skipped: {error}")
             return None
         print(f"{prefix} controller={controller} clips={name} episodes={scores['episodes']} "
-              f"mean_steps={scores['mean_steps']:.1f} median_steps={scores['median_steps']:.0f} "
+              f"mean_steps={scores['mean_steps']:.1f} median_steps={scores['median_steps']:g} "
               f"fall_rate={scores['fall_rate']:.2f} cap={scores['cap']}")
         row = {f"{prefix}_{k}": scores[k] for k in ("mean_steps", "median_steps", "fall_rate")}
         until = f"next {scores['horizon']} steps" + (" played on, or to the clip's end" if hold else "")
