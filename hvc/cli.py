@@ -95,6 +95,8 @@ def _job(cfg: DictConfig, job_dir: Path) -> None:
         log.info("stage=%s run dir %s", cfg.stage, run_dir)
         if cfg.stage in ("train", "rollout"):  # resolved before any env is built: a set without skills fails first
             _write_skills(cfg, run_dir)
+        if cfg.get("resume"):  # going on (a larger total_steps): finished again when it finishes
+            (run_dir / "summary.json").unlink(missing_ok=True)
         try:
             summary = _dispatch(cfg, run_dir)
         except KeyboardInterrupt:  # Ctrl-C or `kill`: the stage has saved its checkpoint

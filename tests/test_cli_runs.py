@@ -340,6 +340,45 @@ def test_a_killed_lowlevel_run_saves_every_clip_it_was_training(tmp_path):
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
+def test_a_finished_lowlevel_run_goes_on_to_a_larger_total_steps(tmp_path):
+    """resume= with a larger total_steps continues a finished expert from its checkpoint (its
+    critic and replay), keeps the evaluation it ended with, and the run is finished again only
+    when it finishes; with the same total_steps nothing trains."""
+    import json
+
+    import pandas as pd
+    import torch
+
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+
+    three = ExpertLibrary.load(shipped_library()).subset(range(3)).save(tmp_path / "three.npz")
+    tiny = ["lowlevel.bc_steps=10", "lowlevel.bc_rollouts=1", "lowlevel.min_replay_unrolls=2",
+            "lowlevel.batch_size=2", "lowlevel.eval_episodes=1", "lowlevel.critic_hidden=[16]"]
+    _run("stage=lowlevel", "clips=go_to_target", "total_steps=40", f"lowlevel.reuse={three}", *tiny,
+         "hydra.run.dir=ll", cwd=tmp_path)
+    expert = tmp_path / "ll" / "experts" / "3_right_turn_CMU_016_43"
+
+    def counters():
+        return torch.load(expert / "checkpoint.pt", weights_only=True)["counters"]
+
+    first = counters()
+    _run("stage=lowlevel", "resume=ll", "total_steps=40", cwd=tmp_path)
+    assert counters() == first
+    bad = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "resume=ll", "total_steps=80",
+                          "lowlevel.critic_hidden=[8]"], cwd=tmp_path, capture_output=True, text=True)
+    assert bad.returncode != 0 and not (tmp_path / "ll" / "summary.json").exists()  # not finished at 80
+    _run("stage=lowlevel", "resume=ll", "total_steps=80", "lowlevel.critic_hidden=[16]", cwd=tmp_path)
+    assert counters()["env_steps"] >= 80 > first["env_steps"] >= 40
+    metrics = pd.read_csv(expert / "metrics.csv")
+    evaluated = metrics[metrics.key == "eval_reward"].env_steps.tolist()
+    assert evaluated == [0, first["env_steps"], counters()["env_steps"]]
+    library = ExpertLibrary.load(tmp_path / "ll" / "experts_go_to_target.npz")
+    assert library.meta["provenance"]["env_steps"][3] == counters()["env_steps"]
+    assert json.loads((tmp_path / "ll" / "summary.json").read_text())["experts"]
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
 def test_reuse_shipped_keeps_every_shipped_expert_of_the_same_skill_under_the_sets_names():
     """clips=go_to_target_extraneous reusing the go_to_target and gaps libraries: the 4 base
     behaviours and the two jumps the gaps library has (same clip and range, named jump_tuck_a /

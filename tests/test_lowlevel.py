@@ -272,6 +272,7 @@ def test_expert_training_resumes_from_its_checkpoint(tmp_path, privileged):
     assert second["learner"]["steps"] > first["learner"]["steps"]
     metrics = pd.read_csv(tmp_path / "metrics.csv")
     assert (metrics.key == "bc_mse_after").sum() == 1          # pre-training ran once
+    assert (metrics.key == "eval_reward").sum() == 3           # after pre-training, at 200 (kept), at 400
     assert metrics.env_steps.max() >= 400 and 0 <= result["eval_completion"] <= 1
 
 

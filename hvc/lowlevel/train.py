@@ -325,6 +325,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         with switch_starts(env, 1.0):
             final.update(evaluate(env, greedy, int(cfg["eval_episodes"]), "eval_switch_"))
     metrics.log(counters["env_steps"], final, learner_steps=learner.steps * batch_size * unroll)
+    save()  # its metrics mark now holds the evaluation, which a later, larger total_steps keeps
     metrics.close()
     env.close()
     progress = json.loads((out_dir / "progress.json").read_text()) if (out_dir / "progress.json").exists() else {}

@@ -3,7 +3,8 @@
 Each clip trains in its own process and run directory (`experts/<i>_<behaviour>_<id>/`:
 metrics.csv, checkpoint.pt, progress.json); the parent shows one progress bar per clip
 and, when all are done, assembles the expert library. `resume=<run dir>` continues a
-killed run in place: finished clips are kept, the others restart from their checkpoints.
+killed run in place: finished clips are kept, the others restart from their checkpoints;
+with a larger `total_steps=`, finished clips go on too, with their critic and replay.
 """
 from __future__ import annotations
 
@@ -147,7 +148,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         out.mkdir(parents=True, exist_ok=True)
         task, body, render = env_dicts(cfg, entries[0], tracking=True)
         task["clip"] = switching_clip(entries, spec)
-        if not (out / "result.json").exists():
+        if not _finished(out, int(cfg.total_steps)):
             jobs.append((combined, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed),
                                          os.getpid(), warm.get(0))))
     for i, entry in enumerate(entries if not cfg.clips.get("switching") else []):
@@ -156,7 +157,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         out = expert_dir(run_dir, i, entry)
         out.mkdir(parents=True, exist_ok=True)
         (out / "error.txt").unlink(missing_ok=True)
-        if (out / "result.json").exists():
+        if _finished(out, int(cfg.total_steps)):
             continue  # finished in an earlier attempt of this run
         task, body, render = env_dicts(cfg, entry, tracking=True)
         jobs.append((entry, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed) + i,
@@ -218,6 +219,19 @@ def _report(bar: Progress, out: Path) -> None:
         bar.update(int(done["env_steps"]), done.get("episode_return"), done.get("learner_steps"))
     except (OSError, ValueError, KeyError):
         pass
+
+
+def _finished(out: Path, total_steps: int) -> bool:
+    """Whether a clip is done: evaluated at its end, and not behind a larger `total_steps` that
+    its checkpoint can go on to (its evaluation is then dropped: the expert it scored changes;
+    the metrics keep it)."""
+    result = out / "result.json"
+    if not result.exists():
+        return False
+    if _steps_done(out) >= total_steps or not (out / "checkpoint.pt").exists():
+        return True
+    result.unlink()
+    return False
 
 
 def _steps_done(out: Path) -> int:
