@@ -149,6 +149,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         task, body, render = env_dicts(cfg, entries[0], tracking=True)
         task["clip"] = switching_clip(entries, spec)
         if not _finished(out, int(cfg.total_steps)):
+            (out / "result.json").unlink(missing_ok=True)  # going on: it scored the policy as it was
             jobs.append((combined, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed),
                                          os.getpid(), warm.get(0))))
     for i, entry in enumerate(entries if not cfg.clips.get("switching") else []):
@@ -159,6 +160,7 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         (out / "error.txt").unlink(missing_ok=True)
         if _finished(out, int(cfg.total_steps)):
             continue  # finished in an earlier attempt of this run
+        (out / "result.json").unlink(missing_ok=True)  # going on: it scored the policy as it was
         task, body, render = env_dicts(cfg, entry, tracking=True)
         jobs.append((entry, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed) + i,
                                    os.getpid(), warm.get(i))))
@@ -222,16 +224,10 @@ def _report(bar: Progress, out: Path) -> None:
 
 
 def _finished(out: Path, total_steps: int) -> bool:
-    """Whether a clip is done: evaluated at its end, and not behind a larger `total_steps` that
-    its checkpoint can go on to (its evaluation is then dropped: the expert it scored changes;
-    the metrics keep it)."""
-    result = out / "result.json"
-    if not result.exists():
-        return False
-    if _steps_done(out) >= total_steps or not (out / "checkpoint.pt").exists():
-        return True
-    result.unlink()
-    return False
+    """Whether a clip is done: evaluated at its end (result.json), and not behind a larger
+    `total_steps` that its checkpoint can go on to."""
+    return (out / "result.json").exists() and (_steps_done(out) >= total_steps
+                                               or not (out / "checkpoint.pt").exists())
 
 
 def _steps_done(out: Path) -> int:
