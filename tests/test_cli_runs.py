@@ -362,8 +362,8 @@ def test_a_finished_lowlevel_run_goes_on_to_a_larger_total_steps(tmp_path):
         return torch.load(expert / "checkpoint.pt", weights_only=True)["counters"]
 
     first = counters()
-    _run("stage=lowlevel", "resume=ll", "total_steps=40", cwd=tmp_path)
-    assert counters() == first
+    again = _run("stage=lowlevel", "resume=ll", "total_steps=40", cwd=tmp_path)
+    assert counters() == first and "is complete" in again.stdout + again.stderr
     bad = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "resume=ll", "total_steps=80",
                           "lowlevel.critic_hidden=[8]"], cwd=tmp_path, capture_output=True, text=True)
     assert bad.returncode != 0 and not (tmp_path / "ll" / "summary.json").exists()  # not finished at 80

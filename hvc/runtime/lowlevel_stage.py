@@ -164,6 +164,9 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
         task, body, render = env_dicts(cfg, entry, tracking=True)
         jobs.append((entry, out, (task, body, render, cfg_ll, str(out), int(cfg.total_steps), int(cfg.seed) + i,
                                    os.getpid(), warm.get(i))))
+    if not jobs and cfg.get("resume"):
+        log.warning("%s is complete: every clip it trains has done total_steps=%d; the library is assembled "
+                    "again; pass a larger total_steps= to go on", run_dir, int(cfg.total_steps))
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")  # one BLAS thread per clip process (inherited at spawn)
     ctx = mp.get_context("spawn")
