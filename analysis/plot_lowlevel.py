@@ -17,13 +17,13 @@ import matplotlib.pyplot as plt
 import pandas as pd
 from matplotlib.ticker import EngFormatter
 
-from hvc.analysis.runs import last_timeline
+from hvc.analysis.runs import read_metrics
 
 
 def load(run_dir: Path) -> dict[str, pd.DataFrame]:
     curves = {}
     for metrics in sorted((run_dir / "experts").glob("*/metrics.csv")):
-        frame = last_timeline(pd.read_csv(metrics))  # a resumed expert's superseded rows dropped
+        frame = read_metrics(metrics.parent)  # a resumed expert's superseded rows dropped
         curves[metrics.parent.name] = frame.pivot_table(index="env_steps", columns="key", values="value", aggfunc="last")
     return curves
 
