@@ -161,11 +161,24 @@ def test_evaluate_prints_a_median_between_two_lengths_as_logged(tmp_path, capsys
     from hvc.io.metrics import MetricsLogger
     from hvc.runtime import composability as composability_module, evaluate_stage
 
-    scores = {"episodes": 2, "mean_steps": 58.5, "median_steps": 58.5, "fall_rate": 1.0, "cap": 1000,
-              "horizon": 33, "switches": {}, "hold": False}
+    scores = {"episodes": 2, "mean_steps": 58.5, "median_steps": 58.5, "median_ci95": (57.0, 60.0), "fall_rate": 1.0,
+              "cap": 1000, "horizon": 33, "switches": {}, "hold": False}
     monkeypatch.setattr(composability_module, "cold_switching", lambda *args, hold=False: dict(scores, hold=hold))
     with MetricsLogger(tmp_path / "metrics.csv") as metrics:
         evaluate_stage.composability(compose(["stage=evaluate", "episodes=2"]), metrics)
     out = capsys.readouterr().out
-    assert "mean_steps=58.5 median_steps=58.5 " in out  # not rounded to the even 58
-    assert (pd.read_csv(tmp_path / "metrics.csv").set_index("key").value["compose_median_steps"] == 58.5)
+    assert "mean_steps=58.5 median_steps=58.5 median_ci95=57-60 " in out  # not rounded to the even 58
+    logged = pd.read_csv(tmp_path / "metrics.csv").set_index("key").value
+    assert logged["compose_median_steps"] == 58.5
+    assert (logged["compose_median_ci95_low"], logged["compose_median_ci95_high"]) == (57.0, 60.0)
+
+
+def test_the_survival_medians_interval_is_the_medians_not_the_means():
+    from hvc.runtime.composability import median_interval
+
+    skewed = np.array([10] * 70 + [1000] * 30)  # mean 307: an interval of the mean would lie far above 10
+    assert median_interval(skewed) == (10.0, 10.0)
+    low, high = median_interval(np.arange(1, 101))
+    assert 40 < low < 50.5 < high < 61  # around the median, narrower than the data
+    assert median_interval(np.arange(1, 101), seed=3) == median_interval(np.arange(1, 101), seed=3)
+    assert median_interval(np.array([26])) == (26.0, 26.0)  # one episode: no resampling to do

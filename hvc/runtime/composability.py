@@ -99,9 +99,21 @@ def cold_switching(cfg: DictConfig, episodes: int, seed: int = 0, hold: bool = F
     lengths = np.asarray(lengths)
     return {"controller": str(cfg.controller.name), "hold": hold, "episodes": len(lengths), "cap": cap, "horizon": horizon,
             "mean_steps": float(lengths.mean()), "median_steps": float(np.median(lengths)),
-            "fall_rate": float(falls / len(lengths)),
+            "median_ci95": median_interval(lengths, seed), "fall_rate": float(falls / len(lengths)),
             "switches": {f"{a}->{b}": {"survived": survived[(a, b)] / tried[(a, b)], "of": tried[(a, b)]}
                          for a, b in sorted(tried)}}
+
+
+def median_interval(lengths: np.ndarray, seed: int = 0) -> tuple[float, float]:
+    """95% percentile-bootstrap interval of the median episode length: the survival of two
+    libraries differs by a few steps, and this says which differences 100 episodes resolve."""
+    from scipy.stats import bootstrap
+
+    if len(np.unique(lengths)) < 2:  # one episode, or all alike: nothing to resample
+        return float(np.median(lengths)), float(np.median(lengths))
+    interval = bootstrap((lengths,), np.median, confidence_level=0.95, method="percentile", n_resamples=2000,
+                         random_state=np.random.default_rng(seed)).confidence_interval
+    return float(interval.low), float(interval.high)
 
 
 def _clip_of_fragment(envs) -> list[str] | None:

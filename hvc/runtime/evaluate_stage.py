@@ -140,10 +140,12 @@ def composability(cfg: DictConfig, metrics: MetricsLogger) -> dict | None:
         except ControllerUnavailable as error:  # e.g. a stage=lowlevel run dir still training: no library file yet
             print(f"compose skipped: {error}")
             return None
+        low, high = scores["median_ci95"]
         print(f"{prefix} controller={controller} clips={name} episodes={scores['episodes']} "
               f"mean_steps={scores['mean_steps']:.1f} median_steps={scores['median_steps']:g} "
-              f"fall_rate={scores['fall_rate']:.2f} cap={scores['cap']}")
+              f"median_ci95={low:g}-{high:g} fall_rate={scores['fall_rate']:.2f} cap={scores['cap']}")
         row = {f"{prefix}_{k}": scores[k] for k in ("mean_steps", "median_steps", "fall_rate")}
+        row.update({f"{prefix}_median_ci95_low": low, f"{prefix}_median_ci95_high": high})
         until = f"next {scores['horizon']} steps" + (" played on, or to the clip's end" if hold else "")
         for pair, switch in scores["switches"].items():
             a, b = pair.split("->")
