@@ -344,6 +344,23 @@ def test_compare_libraries_leaves_out_options_that_are_whole_sections(tmp_path, 
     assert lines[2] == "| a.npz | 0.40 |  | 30 | 28.5 | 60 | 57 |"
 
 
+def test_a_survival_median_prints_with_its_interval_where_one_was_logged(tmp_path):
+    """Evaluations since 2026-12-06 log each median's bootstrap interval; older ones do not."""
+    from hvc.analysis.evaluations import evaluation_table, markdown
+
+    make_evaluation(tmp_path, "0", "old.npz", {"CMU_1": 0.5}, (27.9, 26.0))
+    run = make_evaluation(tmp_path, "1", "new.npz", {"CMU_1": 0.5}, (30.8, 30.0))
+    pd.DataFrame([(0, 0, 300.0, "compose_median_ci95_low", 27.0), (0, 0, 300.0, "compose_median_ci95_high", 33.5)]).to_csv(
+        run / "metrics.csv", mode="a", header=False, index=False)
+    table = evaluation_table(load_runs([tmp_path]))
+    assert table.compose_median_ci95_high.tolist()[1] == 33.5 and math.isnan(table.compose_median_ci95_low[0])
+    lines = markdown(table).splitlines()
+    assert lines[0] == ("| library | CMU_1 | compose_mean_steps | compose_median_steps | compose_held_mean_steps "
+                        "| compose_held_median_steps |")
+    assert lines[2] == "| old.npz | 0.50 | 27.9 | 26 | 55.8 | 52 |"
+    assert lines[3] == "| new.npz | 0.50 | 30.8 | 30 [27, 33.5] | 61.6 | 60 |"
+
+
 def test_evaluation_rows_keep_the_sweeps_order_and_are_told_apart_when_labelled_alike(tmp_path):
     from hvc.analysis.evaluations import evaluation_table, markdown
 

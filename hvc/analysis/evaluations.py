@@ -10,6 +10,9 @@ import pandas as pd
 
 # The survival columns, in the order a reader compares them: random switches, then played on.
 SURVIVAL = ("compose_mean_steps", "compose_median_steps", "compose_held_mean_steps", "compose_held_median_steps")
+# Each median's 95% bootstrap interval (logged since 2026-12-06): columns of the table, printed inside the median's cell.
+INTERVALS = {median: (f"{median.removesuffix('_steps')}_ci95_low", f"{median.removesuffix('_steps')}_ci95_high")
+             for median in SURVIVAL if median.endswith("_median_steps")}
 
 
 def evaluation_table(frame: pd.DataFrame, by: Sequence[str] = ("library",), score: str = "reward") -> pd.DataFrame:
@@ -28,7 +31,8 @@ def evaluation_table(frame: pd.DataFrame, by: Sequence[str] = ("library",), scor
     clips = [k for k in dict.fromkeys(logged.key) if k.startswith(f"{score}/")]
     if not clips:
         raise ValueError(f"no {score}/<clip> rows: are these stage=evaluate runs? (score={score!r})")
-    columns = clips + [k for k in SURVIVAL if k in set(logged.key)]
+    survival = [c for k in SURVIVAL for c in (k, *INTERVALS.get(k, ())) if c in set(logged.key)]
+    columns = clips + survival
     values = logged[logged.key.isin(columns)].pivot_table(index="run", columns="key", values="value", aggfunc="last")
     labels = [k for k in by if k != "run"]
     runs = frame.groupby("run")[["status", *labels]].first()
@@ -45,18 +49,25 @@ def evaluation_table(frame: pd.DataFrame, by: Sequence[str] = ("library",), scor
 
 def markdown(table: pd.DataFrame, digits: int = 2) -> str:
     """`table` (an `evaluation_table`) as a markdown table: clip scores to `digits` decimals,
-    survival steps to one (whole ones without), other columns as they are, NaN blank."""
+    survival steps to one (whole ones without), a median with its interval as `26 [24, 29]`,
+    other columns as they are, NaN blank."""
     scores = set(table.attrs.get("scores", []))
+    bounds = {c for pair in INTERVALS.values() for c in pair}
+    shown = [c for c in table.columns if c not in bounds]
 
-    def cell(column: str, value) -> str:
+    def steps(value) -> str:
+        return f"{value:.1f}".removesuffix(".0")
+
+    def cell(column: str, row: dict) -> str:
+        value = row[column]
         if isinstance(value, float) and pd.isna(value):
             return ""
         if column in SURVIVAL:
-            return f"{value:.1f}".removesuffix(".0")
+            low, high = (row.get(c, float("nan")) for c in INTERVALS.get(column, ("", "")))
+            return steps(value) + ("" if pd.isna(low) or pd.isna(high) else f" [{steps(low)}, {steps(high)}]")
         return f"{value:.{digits}f}" if column in scores else str(value)
-    lines = ["| " + " | ".join(map(str, table.columns)) + " |", "|" + " --- |" * len(table.columns)]
-    lines += ["| " + " | ".join(cell(c, v) for c, v in zip(table.columns, row)) + " |"
-              for row in table.itertuples(index=False)]
+    lines = ["| " + " | ".join(map(str, shown)) + " |", "|" + " --- |" * len(shown)]
+    lines += ["| " + " | ".join(cell(c, row) for c in shown) + " |" for row in table.to_dict("records")]
     return "\n".join(lines)
 
 
