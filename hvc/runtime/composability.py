@@ -113,7 +113,7 @@ def median_interval(lengths: np.ndarray, seed: int = 0) -> tuple[float, float]:
         return float(np.median(lengths)), float(np.median(lengths))
     interval = bootstrap((lengths,), np.median, confidence_level=0.95, method="percentile", n_resamples=2000,
                          random_state=np.random.default_rng(seed)).confidence_interval
-    return float(interval.low), float(interval.high)
+    return round(float(interval.low), 1), round(float(interval.high), 1)  # percentiles interpolate between medians
 
 
 def _clip_of_fragment(envs) -> list[str] | None:
