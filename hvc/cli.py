@@ -20,9 +20,9 @@ from omegaconf.errors import ConfigAttributeError, ConfigKeyError, ValidationErr
 from hvc.config import CONF_DIR, ConfigError, check_group_overrides, resolve_parallelism, unknown_key, validate
 from hvc.errors import HvcUserError
 from hvc.provenance import record_command
-from hvc.runtime.inputs import check_inputs
+from hvc.runtime.inputs import check_inputs, check_run_dir
 from hvc.runtime.lock import locked
-from hvc.runtime.run_dirs import merge_overrides, remove_stub, save_overrides, saved_overrides
+from hvc.runtime.run_dirs import branch_run, merge_overrides, remove_stub, save_overrides, saved_overrides
 from hvc.runtime.sweep_report import SweepReport, forget_failure, record_failure, remove_stub_sweep
 
 log = logging.getLogger("hvc")
@@ -31,7 +31,7 @@ log = logging.getLogger("hvc")
 USER_ERRORS = (FileNotFoundError, HvcUserError, ConfigError)
 # Options that take a path: a value Hydra's override grammar cannot read as written (a sweep
 # job dir such as 0_lowlevel.hidden-[16], or 0_fragment_len=1,seed=0 from before plain names) is quoted.
-PATH_OPTIONS = ("resume", "from_run", "library", "mocap_file", "lowlevel.reuse", "lowlevel.warm_start",
+PATH_OPTIONS = ("resume", "branch_from", "from_run", "library", "mocap_file", "lowlevel.reuse", "lowlevel.warm_start",
                 "hydra.run.dir")
 
 
@@ -72,9 +72,15 @@ def _job(cfg: DictConfig, job_dir: Path) -> None:
     run_dir = job_dir
     given = list(HydraConfig.get().overrides.task)  # this job's own: a multirun job's values
     options = given
+    branch = None
     if cfg.get("resume"):  # go on with the run's own options, this command's winning
         run_dir = _run_to_resume(cfg, job_dir)
         options = merge_overrides(saved_overrides(run_dir), given)
+        cfg = _composed(cfg, given, options)
+    elif cfg.get("branch_from"):  # a new run going on from a copy of another's state, with its options
+        branch = Path(str(cfg.branch_from))
+        check_run_dir(f"branch_from={branch}", branch)
+        options = merge_overrides(saved_overrides(branch), given)
         cfg = _composed(cfg, given, options)
     resolve_parallelism(cfg)
     if cfg.stage == "train":
@@ -85,6 +91,8 @@ def _job(cfg: DictConfig, job_dir: Path) -> None:
     with locked(run_dir):
         if run_dir != job_dir:  # resume=true: the log goes on in the run it found
             _log_into(run_dir, job_dir)
+        if branch is not None:
+            branch_run(branch, run_dir, f"{HydraConfig.get().job.name}.log")
         overrides = HydraConfig.get().overrides  # this job's own: a multirun job's values, not the sweep's lists
         resumed = [f"resume={run_dir}" if cfg.get("resume") and o.startswith("resume=") else o  # resume=true:
                    for o in overrides.task]                                                     # the run it found

@@ -340,10 +340,11 @@ def test_a_killed_lowlevel_run_saves_every_clip_it_was_training(tmp_path):
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
-def test_a_finished_lowlevel_run_goes_on_to_a_larger_total_steps(tmp_path):
+def test_a_finished_lowlevel_run_goes_on_in_place_or_in_a_branch(tmp_path):
     """resume= with a larger total_steps continues a finished expert from its checkpoint (its
     critic and replay), keeps the evaluation it ended with, and the run is finished again only
-    when it finishes; with the same total_steps nothing trains."""
+    when it finishes; with the same total_steps nothing trains. branch_from= does the same in a
+    new dir with the source's options and one changed, leaving the source as it was."""
     import json
 
     import pandas as pd
@@ -375,6 +376,25 @@ def test_a_finished_lowlevel_run_goes_on_to_a_larger_total_steps(tmp_path):
     library = ExpertLibrary.load(tmp_path / "ll" / "experts_go_to_target.npz")
     assert library.meta["provenance"]["env_steps"][3] == counters()["env_steps"]
     assert json.loads((tmp_path / "ll" / "summary.json").read_text())["experts"]
+
+    source = counters()
+    _run("branch_from=ll", "total_steps=120", "lowlevel.kl_cost=0.1", "hydra.run.dir=br", cwd=tmp_path)
+    branched = torch.load(tmp_path / "br" / expert.relative_to(tmp_path / "ll") / "checkpoint.pt",
+                          weights_only=True)["counters"]
+    assert counters() == source and branched["env_steps"] >= 120  # the source untouched, the branch went on
+    rows = pd.read_csv(tmp_path / "br" / expert.relative_to(tmp_path / "ll") / "metrics.csv")
+    assert rows[rows.key == "eval_reward"].env_steps.tolist() == [*evaluated, branched["env_steps"]]
+    options = yaml.safe_load((tmp_path / "br" / "overrides.yaml").read_text())
+    assert {"stage=lowlevel", f"lowlevel.reuse={three}", "lowlevel.kl_cost=0.1", "total_steps=120"} <= set(options)
+    def kl_cost(run):
+        return yaml.safe_load((tmp_path / run / "config_resolved.yaml").read_text())["lowlevel"]["kl_cost"]
+
+    assert (kl_cost("ll"), kl_cost("br")) == (0.3, 0.1)
+    assert len((tmp_path / "br" / "commands.log").read_text().splitlines()) == 5  # the source's 4, then the branch
+    assert (tmp_path / "br" / "summary.json").is_file()
+    again = subprocess.run([sys.executable, "-m", "hvc.cli", "branch_from=ll", "total_steps=160", "hydra.run.dir=br"],
+                           cwd=tmp_path, capture_output=True, text=True)
+    assert again.returncode == 2 and "already holds a run" in again.stderr and again.stderr.rstrip().endswith("/br")
 
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),

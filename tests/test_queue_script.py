@@ -79,3 +79,20 @@ def test_done_and_partial(tmp_path):
                          DONE="exported", PARTIAL="partial")
     assert calls == ["resume=runs/packed seed=1"]  # unpacked, then resumed; the exported job not rerun
     assert (tmp_path / "runs/packed/checkpoint.pt").read_bytes() == b"state"
+
+
+def test_a_branch_not_yet_started_has_its_source_unpacked(tmp_path):
+    """A job `branch_from=<run>` on a new machine: the source run comes out of PARTIAL first;
+    once the branch has its own dir, the source is not needed (nor unpacked) again."""
+    source = tmp_path / "staging/trunk"
+    (source / "experts/0_run").mkdir(parents=True)
+    (source / "experts/0_run/checkpoint.pt").write_bytes(b"trunk")
+    (tmp_path / "partial").mkdir()
+    with tarfile.open(tmp_path / "partial/trunk.tar.gz", "w:gz") as tar:
+        tar.add(source, arcname="trunk")
+    (tmp_path / "runs/started/experts").mkdir(parents=True)
+    calls, _ = run_queue(tmp_path, "runs/branch branch_from=src/trunk seed=0\nruns/started branch_from=other/trunk\n",
+                         fake_hvc(tmp_path), PARTIAL="partial")
+    assert calls == ["hydra.run.dir=runs/branch branch_from=src/trunk seed=0", "resume=runs/started branch_from=other/trunk"]
+    assert (tmp_path / "src/trunk/experts/0_run/checkpoint.pt").read_bytes() == b"trunk"
+    assert not (tmp_path / "other").exists()

@@ -98,3 +98,21 @@ def remove_stub(run_dir: Path, log_file: str) -> bool:
     if run_dir.parent.parent.resolve() == RUNS_ROOT.resolve() and not any(run_dir.parent.iterdir()):
         run_dir.parent.rmdir()
     return True
+
+
+def branch_run(source: Path, target: Path, log_file: str) -> None:
+    """`branch_from=<source>`: copies what the source run made (checkpoints, with an expert's
+    critic and replay, metrics, its command history) into the new run dir `target`, which then
+    goes on from there as a resume would; the source is left as it is, so one finished run can
+    be continued several ways (cut-ins or not) and each branch's curves start at step 0."""
+    held = sorted(p.name for p in target.iterdir() if p.name not in BOOKKEEPING | {log_file})
+    if held:
+        raise ConfigError(f"branch_from={source}: {target} already holds a run ({', '.join(held)}); "
+                          f"continue it with resume={target}")
+    for item in sorted(source.iterdir()):
+        if item.name in BOOKKEEPING - {COMMANDS_FILE} or item.name in ("summary.json", log_file):
+            continue  # the new run's own records, and the source's "finished"
+        if item.is_dir():
+            shutil.copytree(item, target / item.name)
+        else:
+            shutil.copy2(item, target / item.name)

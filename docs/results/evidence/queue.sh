@@ -5,19 +5,19 @@
 # <dir>.lock, so two queues never run the same job (the lock dies with its process).
 # On a new machine: DONE=<dir> skips jobs exported there (<DONE>/<job name>/summary.json, as
 # analysis/export_runs.py writes them); PARTIAL=<dir> first unpacks <PARTIAL>/<job name>.tar.gz
-# (python -m hvc.io.pack) of a job this machine has no dir for, so it resumes.
+# (python -m hvc.io.pack) of a job this machine has no dir for, so it resumes, and of the run a job's
+# branch_from= names, so a branch not yet started has its source.
 #   nohup docs/results/evidence/queue.sh docs/results/evidence/<figure>.jobs > outputs/evidence/<figure>.log 2>&1 &
 set -uo pipefail
 jobs_file=$1
 workers=${WORKERS:-2}
 HVC=${HVC:-.venv/bin/hvc-run}
 
-run_job() {
-  local dir=$1; shift
-  local name=${dir##*/}
-  if [[ -f $dir/summary.json || ( -n ${DONE:-} && -f $DONE/$name/summary.json ) ]]; then return 0; fi
+unpack() {  # <dir>: from $PARTIAL/<its name>.tar.gz, when this machine has no such dir
+  local dir=$1 name=${1##*/}
   if [[ ! -e $dir && -n ${PARTIAL:-} && -f $PARTIAL/$name.tar.gz ]]; then
     local tmp  # unpacked aside, then moved in whole: a failed or concurrent unpack leaves no half dir
+    mkdir -p "$(dirname "$dir")"
     tmp=$(mktemp -d "$(dirname "$dir")/.unpack.XXXXXX")
     if tar xzf "$PARTIAL/$name.tar.gz" -C "$tmp" && [[ -d $tmp/$name ]]; then
       mv -T "$tmp/$name" "$dir" 2>/dev/null || echo "$(date -Is) $dir appeared while unpacking; kept it"
@@ -26,6 +26,16 @@ run_job() {
     fi
     rm -rf "$tmp"
   fi
+}
+
+run_job() {
+  local dir=$1; shift
+  local name=${dir##*/} arg
+  if [[ -f $dir/summary.json || ( -n ${DONE:-} && -f $DONE/$name/summary.json ) ]]; then return 0; fi
+  unpack "$dir"
+  for arg in "$@"; do  # a branch's source too, while the branch has not started
+    [[ $arg == branch_from=* && ! -e $dir ]] && unpack "${arg#branch_from=}"
+  done
   local start=hydra.run.dir rc
   [[ -f $dir/checkpoint.pt || -d $dir/experts ]] && start=resume
   flock -n -E 75 "$dir.lock" "$HVC" "$start=$dir" "$@"
