@@ -75,7 +75,12 @@ def _job(cfg: DictConfig, job_dir: Path) -> None:
     branch = None
     if cfg.get("resume"):  # go on with the run's own options, this command's winning
         run_dir = _run_to_resume(cfg, job_dir)
-        options = merge_overrides(saved_overrides(run_dir), given)
+        saved = saved_overrides(run_dir)
+        branched = [o for o in given if o.startswith("branch_from=") and o not in saved]
+        if branched:  # resuming a branch with its own branch_from= is fine (queue.sh passes it)
+            raise ConfigError(f"{branched[0]} starts a new run, resume= continues {run_dir}, which was not "
+                              f"branched from there: give one of them")
+        options = merge_overrides(saved, given)
         cfg = _composed(cfg, given, options)
     elif cfg.get("branch_from"):  # a new run going on from a copy of another's state, with its options
         branch = Path(str(cfg.branch_from))

@@ -395,6 +395,18 @@ def test_a_finished_lowlevel_run_goes_on_in_place_or_in_a_branch(tmp_path):
     again = subprocess.run([sys.executable, "-m", "hvc.cli", "branch_from=ll", "total_steps=160", "hydra.run.dir=br"],
                            cwd=tmp_path, capture_output=True, text=True)
     assert again.returncode == 2 and "already holds a run" in again.stderr and again.stderr.rstrip().endswith("/br")
+    resumed = _run("resume=br", "branch_from=ll", "total_steps=120", cwd=tmp_path)  # as queue.sh resumes a branch
+    assert "is complete" in resumed.stdout + resumed.stderr
+    for args, says in ((["resume=ll", "branch_from=br"], "starts a new run"),
+                       (["branch_from=br/experts", "hydra.run.dir=b2"], "not a run dir")):
+        bad = subprocess.run([sys.executable, "-m", "hvc.cli", *args], cwd=tmp_path, capture_output=True, text=True)
+        assert bad.returncode == 2 and says in bad.stderr, (args, bad.stderr[-500:])
+    from hvc.runtime.lock import locked
+
+    with locked(tmp_path / "ll"):
+        busy = subprocess.run([sys.executable, "-m", "hvc.cli", "branch_from=ll", "hydra.run.dir=b4"], cwd=tmp_path,
+                              capture_output=True, text=True)
+    assert busy.returncode == 2 and "in use by another hvc-run" in busy.stderr and not (tmp_path / "b4").exists()
 
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),

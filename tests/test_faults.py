@@ -276,3 +276,35 @@ def test_a_resume_goes_on_with_the_optimiser_state_and_counters_it_saved(tmp_pat
     adam_step = lambda state: int(state["optimizer"]["state"][0]["step"])  # noqa: E731
     assert adam_step(second) == adam_step(first) + updates
     assert second["counters"]["env_steps"] == 120 and second["counters"]["episodes"] > first["counters"]["episodes"] > 0
+
+
+def test_a_branch_whose_copy_fails_leaves_only_bookkeeping(tmp_path, monkeypatch):
+    """A copy that fails part way (disk full, a file gone) leaves the new dir as it was, so the
+    same branch_from= can run again; the source's ending records and temp files are not copied."""
+    import shutil
+
+    from hvc.runtime import run_dirs
+
+    source, target = tmp_path / "src", tmp_path / "new"
+    (source / "experts/0_run").mkdir(parents=True)
+    for name in ("experts/0_run/checkpoint.pt", "experts/0_run/metrics.csv", "commands.log", "summary.json",
+                 "failed.json", "checkpoint.pt.tmp", "cli.log"):
+        (source / name).write_text(name)
+    target.mkdir()
+    (target / "cli.log").write_text("this job's log")
+    copies = []
+
+    def copy_then_fail(src, dst, **kwargs):
+        if copies:
+            raise OSError(28, "No space left on device")
+        copies.append(dst)
+        return shutil.copy2(src, dst)
+
+    monkeypatch.setattr(run_dirs.shutil, "copy2", copy_then_fail)
+    with pytest.raises(OSError):
+        run_dirs.branch_run(source, target, "cli.log")
+    assert copies and sorted(p.name for p in target.iterdir()) == ["cli.log"]
+    monkeypatch.undo()
+    run_dirs.branch_run(source, target, "cli.log")
+    assert sorted(p.name for p in target.iterdir()) == ["cli.log", "commands.log", "experts"]
+    assert (target / "cli.log").read_text() == "this job's log"

@@ -16,7 +16,9 @@ import yaml
 
 from hvc.config import GROUPS, ConfigError
 from hvc.provenance import COMMANDS_FILE
+from hvc.errors import RunDirInUse
 from hvc.runtime.lock import LOCK_FILE, holder
+from hvc.runtime.sweep_report import FAILED_FILE
 
 log = logging.getLogger(__name__)
 
@@ -84,9 +86,12 @@ def save_overrides(run_dir: Path, overrides: list[str]) -> None:
     (run_dir / OVERRIDES_FILE).write_text(yaml.safe_dump([o for o in overrides if _key(o) != "resume"]))
 
 
+BRANCHING = ".branching"  # where branch_run copies before moving in
 # What hvc-run writes into a run dir before the stage's own work (besides Hydra's .hydra/ and
 # the job's log): a dir holding no more is a stub of a command that failed before any work.
-BOOKKEEPING = {".hydra", LOCK_FILE, OVERRIDES_FILE, "config_resolved.yaml", COMMANDS_FILE}
+BOOKKEEPING = {".hydra", LOCK_FILE, OVERRIDES_FILE, "config_resolved.yaml", COMMANDS_FILE, BRANCHING}
+# The source's records of its own ending and the episodes it recorded stay with it (and .tmp, .mp4 files).
+NOT_BRANCHED = {"summary.json", FAILED_FILE, "episodes"}
 
 
 def remove_stub(run_dir: Path, log_file: str) -> bool:
@@ -101,18 +106,36 @@ def remove_stub(run_dir: Path, log_file: str) -> bool:
 
 
 def branch_run(source: Path, target: Path, log_file: str) -> None:
-    """`branch_from=<source>`: copies what the source run made (checkpoints, with an expert's
+    """`branch_from=<source>`: copies the source run's state (checkpoints, with an expert's
     critic and replay, metrics, its command history) into the new run dir `target`, which then
-    goes on from there as a resume would; the source is left as it is, so one finished run can
-    be continued several ways (cut-ins or not) and each branch's curves start at step 0."""
+    goes on from there as a resume would; the source is left as it is, so one run can be
+    continued several ways (cut-ins or not) and each branch's curves start at step 0. The copy
+    is made aside and moved in whole, so a failed one leaves nothing but bookkeeping."""
+    if not ((source / "checkpoint.pt").is_file() or (source / "experts").is_dir()):
+        raise ConfigError(f"branch_from={source} has no checkpoint to go on from (checkpoint.pt or experts/): "
+                          f"only stage=train and stage=lowlevel runs branch")
+    writer = holder(source)
+    if writer is not None:
+        raise RunDirInUse(f"branch_from={source} is in use by another hvc-run ({writer}); branch from it once it "
+                          f"has stopped, or it would go on from whatever step it had reached")
+    aside = target / BRANCHING
+    shutil.rmtree(aside, ignore_errors=True)  # an earlier attempt's, killed while copying
     held = sorted(p.name for p in target.iterdir() if p.name not in BOOKKEEPING | {log_file})
     if held:
         raise ConfigError(f"branch_from={source}: {target} already holds a run ({', '.join(held)}); "
                           f"continue it with resume={target}")
-    for item in sorted(source.iterdir()):
-        if item.name in BOOKKEEPING - {COMMANDS_FILE} or item.name in ("summary.json", log_file):
-            continue  # the new run's own records, and the source's "finished"
-        if item.is_dir():
-            shutil.copytree(item, target / item.name)
-        else:
-            shutil.copy2(item, target / item.name)
+    aside.mkdir()
+    try:
+        for item in sorted(source.iterdir()):
+            if item.name in NOT_BRANCHED or item.name == log_file or item.suffix in (".tmp", ".mp4") \
+                    or (item.name in BOOKKEEPING and item.name != COMMANDS_FILE):
+                continue
+            if item.is_dir():
+                shutil.copytree(item, aside / item.name, ignore=shutil.ignore_patterns("*.tmp"))
+            else:
+                shutil.copy2(item, aside / item.name)
+        for item in aside.iterdir():
+            item.rename(target / item.name)
+    finally:
+        shutil.rmtree(aside, ignore_errors=True)
+
