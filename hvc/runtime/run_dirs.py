@@ -15,8 +15,8 @@ from pathlib import Path
 import yaml
 
 from hvc.config import GROUPS, ConfigError
-from hvc.provenance import COMMANDS_FILE
 from hvc.errors import RunDirInUse
+from hvc.provenance import COMMANDS_FILE
 from hvc.runtime.lock import LOCK_FILE, holder
 from hvc.runtime.sweep_report import FAILED_FILE
 
