@@ -7,13 +7,13 @@ resets, dm_control composer's on the same task, and the mean reset time of each.
 time of one low-level expert's action (numpy float32, hidden 256) against its 30 us goal,
 and for fragments on go_to_target and gaps the actor's env steps/s (env + experts + camera)
 and the V-trace learner's transitions/s at the task's Table A.1 sizes (on gaps, with the
-image encoder in float32 and in bfloat16: `image_precision`, their ratio). Last, two envs of the
+image encoder in float32 and in bfloat16: `image_precision`, their ratio). Then two envs of the
 rolling ball (end_to_end) and of the humanoid (fragments) stepped by VectorEnv with 0, 1 or 2
 of them in the main process, against twice one env's rate stepped directly (the ceiling of
 two cores; the humanoid's goal is 0.85 with one of them in the main process). Then a short
 real training run (fragments on go_to_target) against its actor-only and learner-only rates
 measured in the same call: the two fractions should add up to 0.9 or more, or a core waits.
-`--only` picks lines. Ratios, not absolute times, are the numbers to compare across machines.
+Last, Ray actors acting against the local worker processes (`--only ray`). `--only` picks lines. Ratios, not absolute times, are the numbers to compare across machines.
 """
 from __future__ import annotations
 

@@ -216,7 +216,7 @@ def _with_resumed_options(argv: list[str]) -> list[str]:
     """`resume=<run dir>`: the run's saved options after this command's (which win), before
     Hydra composes, so that an option of the run's own groups (task.turn_rate_repeat of
     task=tracking) can be changed on resume, and Hydra's run dir set to the run's.
-    resume=true is merged in _run, once found."""
+    resume=true is merged in _job, once found."""
     dirs = [_unquoted(a.partition("=")[2]) for a in argv if a.startswith("resume=")]
     if len(dirs) != 1 or dirs[0].lower() == "true" or not Path(dirs[0]).is_dir():
         return argv

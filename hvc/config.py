@@ -23,7 +23,7 @@ STAGES = ("rollout", "train", "record", "info", "convert", "playback", "openloop
 MOCAP_STAGES = ("info", "convert", "playback", "openloop", "lowlevel", "evaluate")
 # Top-level keys that must be positive integers.
 POSITIVE_INTS = ("fragment_len", "total_steps", "log_every", "video_steps", "episodes")
-# Task kinds with an environment on the fast path (tracking arrives with the mocap issue).
+# Task kinds with an environment on the fast path.
 RUNNABLE_TASK_KINDS = ("go_to_target", "corridor", "maze", "tracking")
 IMAGE_PRECISIONS = ("float32", "bfloat16")  # the image encoder's compute (hvc.agents.network.ImageEncoder)
 

@@ -61,9 +61,6 @@ class GaussianPolicy(nn.Module):
     def mean(self, obs: torch.Tensor) -> torch.Tensor:
         return torch.tanh(self.net(self.normalizer(obs[..., :self.obs_size])))
 
-    def log_prob(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return gaussian_log_prob(action, self.mean(obs), self.sigma)
-
 
 def gaussian_log_prob(action: torch.Tensor, mean: torch.Tensor, sigma: float) -> torch.Tensor:
     z = (action - mean) / sigma

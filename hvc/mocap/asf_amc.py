@@ -83,9 +83,6 @@ class MocapFrames:
     def num_frames(self) -> int:
         return int(self.root_pos.shape[0])
 
-    def joint(self, name: str) -> np.ndarray:
-        return self.joints[:, self.joint_names.index(name)]
-
 
 # --------------------------------------------------------------------------- rotations
 def _axis_rot(axis: int, deg: np.ndarray) -> np.ndarray:

@@ -50,11 +50,6 @@ class ReferenceClip:
     body_quaternions: np.ndarray
     center_of_mass: np.ndarray
 
-    @property
-    def duration(self) -> float:
-        """Seconds from the first to the last step."""
-        return (self.num_steps - 1) * self.dt
-
     def heading(self) -> np.ndarray:
         """Unwrapped root heading (rad, counter-clockwise from +x seen from above) per step."""
         return root_heading(self.quaternion)

@@ -1,4 +1,4 @@
-"""The main job until high-level training lands: random actions on the fast env.
+"""`stage=rollout`: random high-level actions on the fast env, no learning.
 
 The actions are high-level ones through the configured controller (fragments of the
 expert library, queries, or end_to_end body actions) when it can be built, else random
