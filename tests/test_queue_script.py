@@ -96,3 +96,32 @@ def test_a_branch_not_yet_started_has_its_source_unpacked(tmp_path):
     assert calls == ["hydra.run.dir=runs/branch branch_from=src/trunk seed=0", "resume=runs/started branch_from=other/trunk"]
     assert (tmp_path / "src/trunk/experts/0_run/checkpoint.pt").read_bytes() == b"trunk"
     assert not (tmp_path / "other").exists()
+
+
+def test_edits_to_the_jobs_file_or_the_script_do_not_reach_a_running_queue(tmp_path):
+    """A queue runs the jobs its file held when it started, and an in-place edit of queue.sh while
+    it runs (bash reads a script as it goes: one once broke a running queue's last line) leaves it
+    to finish as it started. The first job's hvc-run makes both edits."""
+    queue = tmp_path / "queue.sh"
+    queue.write_bytes(QUEUE.read_bytes())
+    jobs_file = tmp_path / "x.jobs"
+    jobs_file.write_text("runs/a seed=0\nruns/b seed=1\n")
+    script = tmp_path / "fake-hvc"
+    # the same inode rewritten: what an editor or `cat >` does; where the old script's next line
+    # stood, the new text says `exit 9`
+    script.write_text(textwrap.dedent(f"""\
+        #!/usr/bin/env bash
+        echo "$*" >> {tmp_path}/calls.txt
+        if [[ $* == *runs/a* ]]; then
+          echo "runs/c seed=2" >> {jobs_file}
+          size=$(stat -c %s {queue})
+          {{ head -c "$size" /dev/zero | tr '\\0' '#'; printf '\\nexit 9\\n'; }} > {queue}.new
+          cat {queue}.new > {queue}
+        fi
+        """))
+    script.chmod(0o755)
+    result = subprocess.run(["bash", str(queue), str(jobs_file)], cwd=tmp_path, capture_output=True, text=True,
+                            env={**os.environ, "HVC": str(script), "WORKERS": "1"}, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "calls.txt").read_text().splitlines() == ["hydra.run.dir=runs/a seed=0",
+                                                                  "hydra.run.dir=runs/b seed=1"]

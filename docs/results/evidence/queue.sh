@@ -2,7 +2,8 @@
 # Runs the evidence jobs listed in a jobs file ("<run dir> <hvc-run overrides...>" per line),
 # WORKERS at a time. A job whose dir has summary.json is done; one with checkpoint.pt (or, for
 # stage=lowlevel, experts/) is continued with resume=<dir>; otherwise it starts in <dir>. Each job holds flock on
-# <dir>.lock, so two queues never run the same job (the lock dies with its process).
+# <dir>.lock, so two queues never run the same job (the lock dies with its process). A queue runs the
+# jobs its file held when it started.
 # On a new machine: DONE=<dir> skips jobs exported there (<DONE>/<job name>/summary.json, as
 # analysis/export_runs.py writes them); PARTIAL=<dir> first unpacks <PARTIAL>/<job name>.tar.gz
 # (python -m hvc.io.pack) of a job this machine has no dir for, so it resumes, and of the run a job's
@@ -47,18 +48,27 @@ run_job() {
   fi
 }
 
-worker() {
-  local me=$1 i=0
-  while read -r dir args; do
-    [[ -z $dir || $dir == \#* ]] && continue
+worker() {  # <index>: every workers-th job of the list, from the index-th
+  local me=$1 i=0 line dir args
+  for line in "${job_lines[@]}"; do
+    read -r dir args <<< "$line"
+    [[ -z ${dir:-} || $dir == \#* ]] && continue
     if (( i++ % workers == me )); then
       # shellcheck disable=SC2086
       mkdir -p "$(dirname "$dir")"
       run_job "$dir" $args >> "$dir.out" 2>&1 < /dev/null || true
       tail -1 "$dir.out"
     fi
-  done < "$jobs_file"
+  done
 }
 
-for ((w = 0; w < workers; w++)); do worker "$w" & done
-wait
+main() {
+  # the jobs as the file holds them now: an edit to it while the queue runs changes nothing here
+  mapfile -t job_lines < "$jobs_file"
+  for ((w = 0; w < workers; w++)); do worker "$w" & done
+  wait
+}
+
+# bash reads a script as it runs it: with everything in functions and the last line read
+# before main starts, an edit to this file cannot reach a queue already running
+main; exit
