@@ -1,7 +1,7 @@
 """Libraries (or structured policies) side by side from their `stage=evaluate` runs: per
 library, each clip's tracking score and the random-switch survival, as a markdown table.
 
-    hvc-run -m stage=evaluate episodes=100 library=hvc/data/experts_go_to_target.npz,outputs/skills/<run>/experts_go_to_target.npz
+    hvc-run -m stage=evaluate episodes=100 library=shipped,outputs/skills/<run>/experts_go_to_target.npz
     python analysis/compare_libraries.py outputs/sweeps/<date>/<time>
     python analysis/compare_libraries.py <evaluate run dirs...> --by library --score completion
 """

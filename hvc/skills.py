@@ -6,6 +6,7 @@ is what lets a sweep's arms differ in clip set. The order, first match wins:
 
 1. the library named for the set: `libraries.<set>=<file.npz>`;
 2. `library=<file.npz>` (one job's skills; refused in a sweep whose arms differ in skills);
+   either one `shipped`: the set's shipped library, by name;
 3. the shipped library of the set (`hvc/data/experts_<set>.npz`);
 4. fragments and query only: a library assembled from experts of other libraries (named ones
    first, then shipped ones) when every clip of the set has one: the x2 / x4 sets of
@@ -101,9 +102,22 @@ def skill_set(cfg: DictConfig) -> str | None:
 
 
 def named_library(cfg: DictConfig, set_name: str) -> str | None:
-    """The library a user named for `set_name`: libraries.<set>, else library=."""
+    """The library a user named for `set_name`: libraries.<set>, else library= ("shipped": the
+    set's shipped one, so that `-m library=shipped,<file>` compares a new library with it)."""
     libraries = cfg.get("libraries") or {}
-    return libraries.get(set_name) or cfg.get("library") or None
+    named = libraries.get(set_name) or cfg.get("library") or None
+    return shipped_library_of(set_name) if named == "shipped" else named
+
+
+def shipped_library_of(set_name: str) -> str:
+    """`hvc/data/experts_<set>.npz`, or one line naming the sets that ship one."""
+    from hvc.lowlevel.library import SHIPPED_DIR
+
+    path = SHIPPED_DIR / f"experts_{set_name}.npz"
+    if not path.is_file():
+        shipped = sorted(p.stem.removeprefix("experts_") for p in SHIPPED_DIR.glob("experts_*.npz"))
+        raise ControllerUnavailable(f"library=shipped: no library ships for {set_name}; shipped: {', '.join(shipped)}")
+    return str(path)
 
 
 # Sweep keys whose arms may run different skills.
@@ -112,13 +126,14 @@ SKILL_KEYS = ("clips", "task", "controller")
 
 def check_sweep_library(argv: Sequence[str]) -> None:
     """Refuses one `library=` for a sweep whose arms differ in skills, before any job: it
-    would serve every arm (the x1 / x2 / x4 arms would all run the x1 set)."""
+    would serve every arm (the x1 / x2 / x4 arms would all run the x1 set). `library=shipped`
+    names each arm's own set's library, so it passes."""
     from hvc.config import ConfigError
 
     if not {"-m", "--multirun"} & set(argv):
         return
     given = dict(a.split("=", 1) for a in argv if "=" in a and not a.startswith("-"))
-    if given.get("library") in (None, "", "null"):
+    if given.get("library") in (None, "", "null", "shipped"):
         return
     swept = {k for k, v in given.items() if _is_sweep(v)} | set(_file_sweep_params(argv))
     varying = [k for k in SKILL_KEYS if k in swept]

@@ -67,6 +67,24 @@ def test_evaluate_scores_the_experts_of_the_entries_it_is_given():
     assert library.experts[0].entry.get("steer")
 
 
+def test_library_shipped_names_the_sets_shipped_library_in_every_stage():
+    """`library=shipped` (what `-m library=shipped,<file>` compares a new library against) is the
+    set's shipped file: for stage=evaluate, for a job's skills, and for a per-set library; a set
+    that ships none fails in one line naming those that do."""
+    from hvc.runtime.evaluate_stage import evaluated_library
+
+    for clips in ("go_to_target", "gaps", "switching"):
+        library, source = evaluated_library(compose(["stage=evaluate", f"clips={clips}", "library=shipped"]))
+        assert source == str(SHIPPED_DIR / f"experts_{clips}.npz")
+        assert len(library) == len(ExpertLibrary.load(SHIPPED_DIR / f"experts_{clips}.npz"))
+    skills = resolve_skills(compose(["task=gaps", "library=shipped"]))
+    assert skills.source == str(SHIPPED_DIR / "experts_gaps.npz") and len(skills.library) == 12
+    skills = resolve_skills(compose(["controller=steerable", "libraries.steerable=shipped"]))
+    assert skills.source == str(SHIPPED_DIR / "experts_steerable.npz")
+    with pytest.raises(ControllerUnavailable, match=r"no library ships for go_to_target_x2; shipped: .*gaps"):
+        evaluated_library(compose(["stage=evaluate", "clips=go_to_target_x2", "library=shipped"]))
+
+
 def test_a_set_assembles_from_a_library_named_for_another_set(tmp_path):
     """An extra clip, trained elsewhere and passed as another set's library, joins the shipped
     go_to_target experts (the untrained set above, whatever ships)."""
@@ -137,6 +155,7 @@ def test_one_library_for_a_sweep_over_clip_sets_is_refused_before_any_job(tmp_pa
     check_sweep_library(["-m", "fragment_len=1,3,10", "library=x.npz"])  # one set: one library serves
     check_sweep_library([*sweep_file, "libraries.go_to_target_x2=x.npz"])
     check_sweep_library(["controller=steerable", "library=x.npz"])  # not a sweep
+    check_sweep_library(["-m", "controller=fragments,steerable", "library=shipped"])  # each arm its own
 
 
 def test_the_saved_config_of_a_run_older_than_per_set_libraries_resolves_its_skills():

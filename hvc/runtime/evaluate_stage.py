@@ -82,18 +82,20 @@ def evaluated_library(cfg: DictConfig) -> tuple[ExpertLibrary, str]:
     """(library, where from): `library=` (a file, or a stage=lowlevel run dir finished or still
     training), else the set's skills as a job would resolve them (hvc.skills): the shipped
     library only when its experts are the set's entries, so a `clips.entries=` override is
-    not scored on the experts the set shipped with."""
+    not scored on the experts the set shipped with; `library=shipped` names the set's shipped one."""
+    from hvc.skills import OWN_POLICY, shipped_library_of, skills_for_job
+
+    name = str(cfg.clips.name)
     if cfg.get("library"):
-        path = Path(cfg.library)
+        path = Path(shipped_library_of(name) if cfg.library == "shipped" else cfg.library)
         if path.is_dir():
             from hvc.runtime.lowlevel_stage import library_from_run
 
             return library_from_run(path, cfg.get("mocap_file")), str(path)
         return ExpertLibrary.load(path), str(path)
     from hvc.runtime.composability import composability_config
-    from hvc.skills import OWN_POLICY, skills_for_job
 
-    name = str(cfg.clips.name)  # resolved once: the composability measure below drives the same skills
+    # resolved once: the composability measure below drives the same skills
     skills = skills_for_job(composability_config(cfg, name if name in OWN_POLICY else "fragments"))
     return skills.library, skills.source
 
