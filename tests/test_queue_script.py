@@ -30,7 +30,7 @@ def run_queue(tmp_path: Path, jobs: str, hvc: Path, **env: str) -> tuple[list[st
     jobs_file = tmp_path / "x.jobs"
     jobs_file.write_text(jobs)
     result = subprocess.run(["bash", str(QUEUE), str(jobs_file)], cwd=tmp_path, capture_output=True, text=True,
-                            env={**os.environ, "HVC": str(hvc), "WORKERS": "1", **env}, timeout=60)
+                            env={**os.environ, "HVC": str(hvc), "WORKERS": "1", "LOCK_WAIT": "1", **env}, timeout=60)
     assert result.returncode == 0, result.stderr
     calls = tmp_path / "calls.txt"
     return (calls.read_text().splitlines() if calls.exists() else []), result.stdout
@@ -87,6 +87,7 @@ def test_a_branch_not_yet_started_has_its_source_unpacked(tmp_path):
     source = tmp_path / "staging/trunk"
     (source / "experts/0_run").mkdir(parents=True)
     (source / "experts/0_run/checkpoint.pt").write_bytes(b"trunk")
+    (source / "summary.json").write_text("{}")  # finished: a branch waits for its source to finish
     (tmp_path / "partial").mkdir()
     with tarfile.open(tmp_path / "partial/trunk.tar.gz", "w:gz") as tar:
         tar.add(source, arcname="trunk")
@@ -125,3 +126,23 @@ def test_edits_to_the_jobs_file_or_the_script_do_not_reach_a_running_queue(tmp_p
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "calls.txt").read_text().splitlines() == ["hydra.run.dir=runs/a seed=0",
                                                                   "hydra.run.dir=runs/b seed=1"]
+
+
+def test_a_branch_waits_for_its_source_to_finish_or_is_skipped_without_one(tmp_path):
+    """Two workers: the branch's worker waits while the other runs its source, then branches from
+    the finished run; a branch whose source has neither finished nor a queue is not run."""
+    script = tmp_path / "fake-hvc"
+    script.write_text(textwrap.dedent(f"""\
+        #!/usr/bin/env bash
+        echo "$*" >> {tmp_path}/calls.txt
+        if [[ $* == *runs/trunk* && $* != *branch_from* ]]; then
+          sleep 2; mkdir -p runs/trunk; echo '{{}}' > runs/trunk/summary.json
+        fi
+        """))
+    script.chmod(0o755)
+    calls, _ = run_queue(tmp_path, "runs/trunk seed=0\nruns/branch branch_from=runs/trunk seed=1\n"
+                                   "runs/orphan branch_from=runs/nowhere seed=2\n",
+                         script, WORKERS="2", WAIT_SECONDS="0.2")
+    assert calls == ["hydra.run.dir=runs/trunk seed=0", "hydra.run.dir=runs/branch branch_from=runs/trunk seed=1"]
+    assert "branch of runs/nowhere skipped: it has not finished and no queue runs it" in \
+        (tmp_path / "runs/orphan.out").read_text()

@@ -7,7 +7,8 @@
 # On a new machine: DONE=<dir> skips jobs exported there (<DONE>/<job name>/summary.json, as
 # analysis/export_runs.py writes them); PARTIAL=<dir> first unpacks <PARTIAL>/<job name>.tar.gz
 # (python -m hvc.io.pack) of a job this machine has no dir for, so it resumes, and of the run a job's
-# branch_from= names, so a branch not yet started has its source.
+# branch_from= names, so a branch not yet started has its source. Such a branch waits while a queue
+# runs its source (its lock held), and is skipped, said so, if the source has neither finished nor a queue.
 #   nohup docs/results/evidence/queue.sh docs/results/evidence/<figure>.jobs > outputs/evidence/<figure>.log 2>&1 &
 set -uo pipefail
 jobs_file=$1
@@ -29,17 +30,38 @@ unpack() {  # <dir>: from $PARTIAL/<its name>.tar.gz, when this machine has no s
   fi
 }
 
+running() {  # <run dir>: whether a queue holds its lock
+  flock -n -E 75 "$1.lock" true 2>/dev/null
+  (( $? == 75 ))
+}
+
+source_finished() {  # <run dir>: waits while a queue runs it; false (and says so) if it does not finish
+  local src=$1 looks=0
+  until [[ -f $src/summary.json ]]; do
+    # looked at twice, a wait apart: a queue starting the source beside this one may not hold it yet
+    if ! running "$src" && (( looks++ >= 1 )); then
+      echo "$(date -Is) branch of $src skipped: it has not finished and no queue runs it"
+      return 1
+    fi
+    sleep "${WAIT_SECONDS:-60}"
+  done
+}
+
 run_job() {
   local dir=$1; shift
   local name=${dir##*/} arg
   if [[ -f $dir/summary.json || ( -n ${DONE:-} && -f $DONE/$name/summary.json ) ]]; then return 0; fi
   unpack "$dir"
-  for arg in "$@"; do  # a branch's source too, while the branch has not started
-    [[ $arg == branch_from=* && ! -e $dir ]] && unpack "${arg#branch_from=}"
+  for arg in "$@"; do  # a branch not yet started: its source unpacked, and finished first
+    if [[ $arg == branch_from=* && ! -e $dir ]]; then
+      unpack "${arg#branch_from=}"
+      source_finished "${arg#branch_from=}" || return 0
+    fi
   done
   local start=hydra.run.dir rc
   [[ -f $dir/checkpoint.pt || -d $dir/experts ]] && start=resume
-  flock -n -E 75 "$dir.lock" "$HVC" "$start=$dir" "$@"
+  # a few seconds' wait, not -n: a branch's look at this lock (running) holds it for an instant
+  flock -w "${LOCK_WAIT:-5}" -E 75 "$dir.lock" "$HVC" "$start=$dir" "$@"
   rc=$?  # read before the echo: its $(date) would set $? to 0
   if (( rc == 75 )); then
     echo "$(date -Is) job $dir skipped: another queue runs it"
