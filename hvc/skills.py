@@ -275,7 +275,7 @@ def _expert_sources(cfg: DictConfig, set_name: str) -> list[str]:
     other shipped ones; steerable and switching policies are not experts of clips."""
     from hvc.lowlevel.library import SHIPPED_DIR
 
-    named = [str(p) for p in (cfg.get("libraries") or {}).values() if p]
+    named = [shipped_library_of(s) if p == "shipped" else str(p) for s, p in (cfg.get("libraries") or {}).items() if p]
     included = [SHIPPED_DIR / f"experts_{s}.npz" for s in _included_sets(cfg.clips)]
     ordered = named + [str(p) for p in included if p.is_file()] + [str(p) for p in shipped_clip_libraries()]
     return list(dict.fromkeys(ordered))

@@ -142,7 +142,7 @@ def test_a_branch_waits_for_its_source_to_finish_or_is_skipped_without_one(tmp_p
     script.chmod(0o755)
     calls, _ = run_queue(tmp_path, "runs/trunk seed=0\nruns/branch branch_from=runs/trunk seed=1\n"
                                    "runs/orphan branch_from=runs/nowhere seed=2\n",
-                         script, WORKERS="2", WAIT_SECONDS="0.2")
+                         script, WORKERS="2", WAIT_SECONDS="1")
     assert calls == ["hydra.run.dir=runs/trunk seed=0", "hydra.run.dir=runs/branch branch_from=runs/trunk seed=1"]
     assert "branch of runs/nowhere skipped: it has not finished and no queue runs it" in \
         (tmp_path / "runs/orphan.out").read_text()

@@ -72,6 +72,7 @@ def test_library_shipped_names_the_sets_shipped_library_in_every_stage():
     set's shipped file: for stage=evaluate, for a job's skills, and for a per-set library; a set
     that ships none fails in one line naming those that do."""
     from hvc.runtime.evaluate_stage import evaluated_library
+    from hvc.runtime.inputs import check_inputs
 
     for clips in ("go_to_target", "gaps", "switching"):
         library, source = evaluated_library(compose(["stage=evaluate", f"clips={clips}", "library=shipped"]))
@@ -79,8 +80,12 @@ def test_library_shipped_names_the_sets_shipped_library_in_every_stage():
         assert len(library) == len(ExpertLibrary.load(SHIPPED_DIR / f"experts_{clips}.npz"))
     skills = resolve_skills(compose(["task=gaps", "library=shipped"]))
     assert skills.source == str(SHIPPED_DIR / "experts_gaps.npz") and len(skills.library) == 12
-    skills = resolve_skills(compose(["controller=steerable", "libraries.steerable=shipped"]))
-    assert skills.source == str(SHIPPED_DIR / "experts_steerable.npz")
+    steerable = compose(["controller=steerable", "libraries.steerable=shipped"])
+    check_inputs(steerable)  # the up-front file check lets the name through, as for library=
+    assert resolve_skills(steerable).source == str(SHIPPED_DIR / "experts_steerable.npz")
+    # a set assembled from another set's library named so (x2 repeats go_to_target's clips)
+    x2 = resolve_skills(compose(["clips=go_to_target_x2", "libraries.go_to_target=shipped"]))
+    assert len(x2.library) == 8 and x2.source.startswith("assembled")
     with pytest.raises(ControllerUnavailable, match=r"no library ships for go_to_target_x2; shipped: .*gaps"):
         evaluated_library(compose(["stage=evaluate", "clips=go_to_target_x2", "library=shipped"]))
 

@@ -38,7 +38,7 @@ def _library_options(cfg: DictConfig) -> Iterator[tuple[str, str]]:
             if item and str(item) != "shipped":
                 yield option, str(item)
     for name, value in (cfg.get("libraries") or {}).items():
-        if value:
+        if value and str(value) != "shipped":
             yield f"libraries.{name}", str(value)
 
 

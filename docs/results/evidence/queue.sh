@@ -8,7 +8,9 @@
 # analysis/export_runs.py writes them); PARTIAL=<dir> first unpacks <PARTIAL>/<job name>.tar.gz
 # (python -m hvc.io.pack) of a job this machine has no dir for, so it resumes, and of the run a job's
 # branch_from= names, so a branch not yet started has its source. Such a branch waits while a queue
-# runs its source (its lock held), and is skipped, said so, if the source has neither finished nor a queue.
+# runs its source (its lock held), and is skipped, said so, if the source has neither finished nor a queue
+# running it: a source still waiting its turn in a queue's list counts as neither, so list a branch where
+# its source will have started (after it on the same worker, or in a queue started after the source's).
 #   nohup docs/results/evidence/queue.sh docs/results/evidence/<figure>.jobs > outputs/evidence/<figure>.log 2>&1 &
 set -uo pipefail
 jobs_file=$1
@@ -38,8 +40,11 @@ running() {  # <run dir>: whether a queue holds its lock
 source_finished() {  # <run dir>: waits while a queue runs it; false (and says so) if it does not finish
   local src=$1 looks=0
   until [[ -f $src/summary.json ]]; do
-    # looked at twice, a wait apart: a queue starting the source beside this one may not hold it yet
-    if ! running "$src" && (( looks++ >= 1 )); then
+    # looked at twice, a wait apart: a queue starting the source beside this one may not hold it yet.
+    # A source still waiting in some queue's list is not seen: list a branch where its source has started
+    if running "$src"; then
+      looks=0
+    elif (( looks++ >= 1 )); then
       echo "$(date -Is) branch of $src skipped: it has not finished and no queue runs it"
       return 1
     fi
@@ -85,6 +90,7 @@ worker() {  # <index>: every workers-th job of the list, from the index-th
 }
 
 main() {
+  [[ -f $jobs_file ]] || { echo "queue.sh: no jobs file $jobs_file" >&2; return 2; }
   # the jobs as the file holds them now: an edit to it while the queue runs changes nothing here
   mapfile -t job_lines < "$jobs_file"
   for ((w = 0; w < workers; w++)); do worker "$w" & done
