@@ -257,10 +257,15 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("task=tracking is the low-level tracking task: train experts with stage=lowlevel "
                           "(or drive it with stage=rollout); stage=train takes a high-level task: "
                           f"{', '.join(t for t in group_options('task') if t != 'tracking')}")
-    for key in ("switch_starts", "cut_ins"):
+    for key in ("switch_starts", "cut_ins", "pushes"):
         share = cfg.lowlevel.get(key, 0.0)
         if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 <= share <= 1:
             raise ConfigError(f"lowlevel.{key}={share!r} must be a probability from 0 to 1 (e.g. 0.5)")
+    force, steps = cfg.lowlevel.get("push_force", 500.0), cfg.lowlevel.get("push_steps", 3)
+    if isinstance(force, bool) or not isinstance(force, (int, float)) or force <= 0:
+        raise ConfigError(f"lowlevel.push_force={force!r} must be a positive force in newtons (e.g. 500.0)")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ConfigError(f"lowlevel.push_steps={steps!r} must be a whole number of control steps, at least 1 (e.g. 3)")
     if float(cfg.algorithm.get("updates_per_unroll", 1)) <= 0:
         raise ConfigError(f"algorithm.updates_per_unroll={cfg.algorithm.updates_per_unroll} must be positive "
                           f"(e.g. 0.25: one learner update per 4 unrolls)")

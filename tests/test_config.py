@@ -132,6 +132,9 @@ def _hvc_run(*args, cwd):
     (["stage=lowlevel", "task=tracking", "task.heading_termination=0"], "task.heading_termination=0 must be"),
     (["stage=lowlevel", "lowlevel.cut_ins=1.5"], "lowlevel.cut_ins=1.5 must be a probability from 0 to 1"),
     (["stage=lowlevel", "lowlevel.switch_starts=true"], "lowlevel.switch_starts=True must be a probability"),
+    (["stage=lowlevel", "lowlevel.pushes=2"], "lowlevel.pushes=2 must be a probability from 0 to 1"),
+    (["stage=lowlevel", "lowlevel.push_force=-5"], "lowlevel.push_force=-5 must be a positive force in newtons"),
+    (["stage=lowlevel", "lowlevel.push_steps=1.5"], "lowlevel.push_steps=1.5 must be a whole number of control steps"),
     (["controller=fragments", "clips=go_to_target_x2", "clips.entries=[{id:CMU_131_14,behaviour:stand_c,start:42,end:84}]",
       "library=null", "num_envs=1"], "stage=lowlevel clips=go_to_target_x2"),
     # typed keys (hvc/schema.py): Hydra's own message, the key and the type it wants

@@ -213,3 +213,58 @@ def test_an_expert_trained_with_cut_ins_hands_over_at_its_fragment_ends(tmp_path
     falls = rows[1.0].query("key == 'cut_in_falls'").value
     assert len(cuts) == 3 and (cuts > 0.6 * 60 / 3).all() and (cuts <= 60 / 3).all()
     assert ((falls >= 0) & (falls <= 1)).all()
+
+
+def test_a_push_moves_the_root_its_way_for_its_steps_and_ends_with_the_episode(run_env):
+    """A push acts for exactly push_steps control steps: the root's velocity gains the push's
+    impulse in its direction against the same steps without it; the force is gone afterwards
+    and after stop(); a fall within a second of the push is laid to it."""
+    from hvc.lowlevel.pushes import Pushes
+
+    env, library = run_env
+    logic = env.layout.logic
+    run = next(e for e in library.experts if e.entry["behaviour"] == "run")
+
+    def velocities(probability):
+        env.rng = np.random.default_rng(3)
+        pushes = Pushes(probability, 400.0, 3, logic.root, np.random.default_rng(0), fall_window=33)
+        from hvc.lowlevel.library import policy_observation
+
+        obs, out, forces = env.reset(), [], []
+        for _ in range(5):
+            started = pushes.before_step(env.data)
+            if started:
+                pushes.probability = 0.0  # one push only
+            forces.append(env.data.xfrc_applied[logic.root, :3].copy())
+            obs, _, _, _ = env.step(run.act(policy_observation(obs)))
+            out.append(env.data.qvel[logic.root_dof:logic.root_dof + 3].copy())
+        assert pushes.fall_follows_push() == (probability > 0)
+        pushes.stop(env.data)
+        assert not env.data.xfrc_applied.any() and not pushes.fall_follows_push()
+        return np.array(out), np.array(forces)
+
+    still, no_force = velocities(0.0)
+    pushed, forces = velocities(1.0)
+    assert not no_force.any()
+    assert (np.linalg.norm(forces[:3], axis=1) == pytest.approx(400.0)) and not forces[3:].any()
+    direction = forces[0] / 400.0
+    assert forces[0][2] == 0 and (forces[:3] == forces[0]).all()
+    gained = (pushed[2] - still[2]) @ direction  # after the 3 pushed steps (0.09 s)
+    impulse = 400.0 * 3 * env.control_timestep / env.model.body_subtreemass[logic.root]
+    assert 0.5 * impulse < gained < 1.5 * impulse
+
+
+def test_an_expert_trained_with_pushes_logs_them_and_without_none(tmp_path):
+    """pushes=1 starts a push whenever none acts (one per push_steps env steps), logged with the
+    share followed by a fall; the final evaluation does not push (its keys are the usual ones)."""
+    rows = {}
+    for share in (0.0, 1.0):
+        result, rows[share] = _train_stand(tmp_path / str(share), f"pushes={share}", 60, 180)
+        assert "eval_switch_completion" not in result and "eval_completion" in result
+    assert "pushes" not in set(rows[0.0].key)
+    counts = rows[1.0].query("key == 'pushes'").value
+    falls = rows[1.0].query("key == 'push_falls'").value
+    assert len(counts) == 3 and (counts >= 60 / 3 - 2).all() and (counts <= 60 / 3 + 2).all()
+    assert ((falls >= 0) & (falls <= 1)).all()
+    # pushed hard every step, the stand falls more: lower step reward than unpushed
+    assert rows[1.0].query("key == 'step_reward'").value.mean() < rows[0.0].query("key == 'step_reward'").value.mean()

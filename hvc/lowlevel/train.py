@@ -38,6 +38,7 @@ from hvc.io.checkpoint import random_states, restore_random_states, save_checkpo
 from hvc.io.metrics import continue_metrics
 from hvc.lowlevel.evaluation import evaluate
 from hvc.lowlevel.library import policy_observation
+from hvc.lowlevel.pushes import Pushes
 from hvc.lowlevel.switch_starts import cut_in, switch_library, switch_starts, switch_states_for
 
 
@@ -166,9 +167,10 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     cut_rng = np.random.default_rng([seed, 29])  # cut-ins' own stream: without them, runs draw as before
+    push_rng = np.random.default_rng([seed, 31])  # the pushes' own, likewise
     torch.manual_seed(seed)
     env = FastEnv.build(task, body, render, seed=seed, render=False)
-    streams = {"rng": rng, "env_rng": env.rng, "cut_rng": cut_rng}
+    streams = {"rng": rng, "env_rng": env.rng, "cut_rng": cut_rng, "push_rng": push_rng}
     logic = env.layout.logic
     obs_size = env.layout.proprio.size + logic.observation_size
     privileged = bool(cfg.get("critic_sees_reference", False))
@@ -193,7 +195,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         if "replay" in state:  # not in a packed run (hvc.io.pack): the replay refills
             replay.load_state_dict(state["replay"])
         counters.update({k: int(v) for k, v in state["counters"].items()})
-        restore_random_states(state, {k: g for k, g in streams.items() if k in state})  # older: no cut_rng
+        restore_random_states(state, {k: g for k, g in streams.items() if k in state})  # older: no cut_rng, push_rng
     elif warm_start is not None:
         if isinstance(warm_start, NumpyPolicy):
             ref_obs, _ = reference_dataset(env)
@@ -237,13 +239,17 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         for layout in env.layouts:
             layout.logic.switch_states, layout.logic.switch_probability = states, switching
         cutters = library.experts if cutting > 0 else None
+    pushes = None
+    if float(cfg.get("pushes", 0.0)) > 0:
+        pushes = Pushes(float(cfg["pushes"]), float(cfg["push_force"]), int(cfg["push_steps"]), logic.root, push_rng,
+                        fall_window=int(round(1.0 / env.control_timestep)))
     actor = NumpyPolicy.from_torch(policy)
     pacer = Pacer(cfg["updates_per_unroll"])
     unroll, batch_size = int(cfg["unroll"]), int(cfg["batch_size"])
     log_every, last_log = int(cfg["log_every"]), counters["env_steps"]
     last_save, start, start_steps = time.monotonic(), time.perf_counter(), counters["env_steps"]
     returns, completions, step_rewards, losses = [], [], [], []
-    cuts, cut_falls = 0, 0
+    cuts, cut_falls, pushed, push_falls = 0, 0, 0, 0
     obs = env.reset()
     stop = StopRequest()
     while counters["env_steps"] < total_steps:
@@ -254,6 +260,8 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         done = cut = False
         for _ in range(unroll):
             action, log_mu = learner.act(actor(seq_obs[-1][:obs_size]), rng)
+            if pushes is not None:
+                pushed += pushes.before_step(env.data)
             obs, reward, discount, done = env.step(action)
             seq_obs.append(stored(obs))
             seq_act.append(action)
@@ -266,6 +274,8 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
                 returns.append(env.episode_return)
                 completions.append(logic.completion)
                 counters["episodes"] += 1
+                if pushes is not None and logic.failure and pushes.fall_follows_push():
+                    push_falls += 1
                 break
             if cutters:  # cut-ins come at the ends of its fragments, counted from the episode's start
                 own = env.layout.logic
@@ -273,6 +283,8 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
                     cut = True  # the unroll ends here, not failed: its last step bootstraps from obs
                     break
         replay.add(**pad_unroll(unroll, seq_obs, seq_act, seq_rew, seq_disc, seq_logmu))
+        if pushes is not None and (done or cut):
+            pushes.stop(env.data)
         if done:
             obs = env.reset()
         elif cut:
@@ -303,11 +315,13 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
                 row.update({k: float(np.mean([l[k] for l in losses])) for k in losses[0]})
             if cuts:
                 row.update(cut_ins=cuts, cut_in_falls=cut_falls / cuts)
+            if pushed:
+                row.update(pushes=pushed, push_falls=push_falls / pushed)
             metrics.log(counters["env_steps"], row, learner_steps=learner.steps * batch_size * unroll)
             (out_dir / "progress.json").write_text(json.dumps({"env_steps": counters["env_steps"],
                                                                "total_steps": total_steps, **row}))
             returns, completions, step_rewards, losses = [], [], [], []
-            cuts, cut_falls = 0, 0
+            cuts, cut_falls, pushed, push_falls = 0, 0, 0, 0
         if time.monotonic() - last_save > float(cfg["checkpoint_seconds"]):
             save()
             last_save = time.monotonic()
