@@ -104,20 +104,11 @@ def skill_set(cfg: DictConfig) -> str | None:
 def named_library(cfg: DictConfig, set_name: str) -> str | None:
     """The library a user named for `set_name`: libraries.<set>, else library= ("shipped": the
     set's shipped one, so that `-m library=shipped,<file>` compares a new library with it)."""
+    from hvc.lowlevel.library import shipped_library
+
     libraries = cfg.get("libraries") or {}
     named = libraries.get(set_name) or cfg.get("library") or None
-    return shipped_library_of(set_name) if named == "shipped" else named
-
-
-def shipped_library_of(set_name: str) -> str:
-    """`hvc/data/experts_<set>.npz`, or one line naming the sets that ship one."""
-    from hvc.lowlevel.library import SHIPPED_DIR
-
-    path = SHIPPED_DIR / f"experts_{set_name}.npz"
-    if not path.is_file():
-        shipped = sorted(p.stem.removeprefix("experts_") for p in SHIPPED_DIR.glob("experts_*.npz"))
-        raise ControllerUnavailable(f"library=shipped: no library ships for {set_name}; shipped: {', '.join(shipped)}")
-    return str(path)
+    return str(shipped_library(set_name)) if named == "shipped" else named
 
 
 # Sweep keys whose arms may run different skills.
@@ -273,9 +264,9 @@ def _expert_sources(cfg: DictConfig, set_name: str) -> list[str]:
     """Libraries to assemble a set from: those the user named, then the shipped libraries of
     the sets it includes (their experts are the ones that set was trained with), then the
     other shipped ones; steerable and switching policies are not experts of clips."""
-    from hvc.lowlevel.library import SHIPPED_DIR
+    from hvc.lowlevel.library import SHIPPED_DIR, shipped_library
 
-    named = [shipped_library_of(s) if p == "shipped" else str(p) for s, p in (cfg.get("libraries") or {}).items() if p]
+    named = [str(shipped_library(s)) if p == "shipped" else str(p) for s, p in (cfg.get("libraries") or {}).items() if p]
     included = [SHIPPED_DIR / f"experts_{s}.npz" for s in _included_sets(cfg.clips)]
     ordered = named + [str(p) for p in included if p.is_file()] + [str(p) for p in shipped_clip_libraries()]
     return list(dict.fromkeys(ordered))

@@ -86,7 +86,7 @@ def test_library_shipped_names_the_sets_shipped_library_in_every_stage():
     # a set assembled from another set's library named so (x2 repeats go_to_target's clips)
     x2 = resolve_skills(compose(["clips=go_to_target_x2", "libraries.go_to_target=shipped"]))
     assert len(x2.library) == 8 and x2.source.startswith("assembled")
-    with pytest.raises(ControllerUnavailable, match=r"no library ships for go_to_target_x2; shipped: .*gaps"):
+    with pytest.raises(ControllerUnavailable, match=r"no library ships for clips=go_to_target_x2; shipped: .*gaps"):
         evaluated_library(compose(["stage=evaluate", "clips=go_to_target_x2", "library=shipped"]))
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 import hvc
 from hvc.agents.mlp import NumpyPolicy
-from hvc.errors import BadInputFile, LibraryVersionError, MissingInputFile
+from hvc.errors import BadInputFile, ControllerUnavailable, LibraryVersionError, MissingInputFile
 from hvc.mocap.reference import Reference
 from hvc.provenance import code_version
 
@@ -182,8 +182,10 @@ def provenance(steps: Sequence[int], extra: dict[str, Any] | None = None) -> dic
 
 
 def shipped_library(clip_set: str = "go_to_target") -> Path:
+    """`hvc/data/experts_<set>.npz`, or one line naming the sets that ship one."""
     path = SHIPPED_DIR / f"experts_{clip_set}.npz"
-    if not path.exists():
-        raise FileNotFoundError(f"no shipped expert library for clips={clip_set} at {path}; "
-                                f"train one with `hvc-run stage=lowlevel clips={clip_set}` and pass library=<file>")
+    if not path.is_file():
+        shipped = sorted(p.stem.removeprefix("experts_") for p in SHIPPED_DIR.glob("experts_*.npz"))
+        raise ControllerUnavailable(f"no library ships for clips={clip_set}; shipped: {', '.join(shipped)}; train one with "
+                                    f"`hvc-run stage=lowlevel clips={clip_set}` and pass library=<file>")
     return path

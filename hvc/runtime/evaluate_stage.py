@@ -18,7 +18,7 @@ from omegaconf import DictConfig
 from hvc.errors import HvcUserError
 from hvc.io.metrics import MetricsLogger
 from hvc.lowlevel.evaluation import evaluate, evaluate_open_loop, steering_response, switching_transitions
-from hvc.lowlevel.library import ExpertLibrary, policy_observation
+from hvc.lowlevel.library import ExpertLibrary, policy_observation, shipped_library
 from hvc.runtime.env_config import env_dicts
 
 
@@ -83,11 +83,11 @@ def evaluated_library(cfg: DictConfig) -> tuple[ExpertLibrary, str]:
     training), else the set's skills as a job would resolve them (hvc.skills): the shipped
     library only when its experts are the set's entries, so a `clips.entries=` override is
     not scored on the experts the set shipped with; `library=shipped` names the set's shipped one."""
-    from hvc.skills import OWN_POLICY, shipped_library_of, skills_for_job
+    from hvc.skills import OWN_POLICY, skills_for_job
 
     name = str(cfg.clips.name)
     if cfg.get("library"):
-        path = Path(shipped_library_of(name) if cfg.library == "shipped" else cfg.library)
+        path = shipped_library(name) if cfg.library == "shipped" else Path(cfg.library)
         if path.is_dir():
             from hvc.runtime.lowlevel_stage import library_from_run
 
