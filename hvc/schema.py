@@ -31,16 +31,20 @@ class VTraceConfig(AlgorithmConfig):
 
 
 @dataclass
-class SVG0RetraceConfig(AlgorithmConfig):
+class SVG0Config(AlgorithmConfig):
     kl_cost: float = 0.1             # eta, KL(pi || pi_target)
     target_update_period: int = 100  # learner steps between target refreshes
     entropy_cost: float = 1e-5       # A.3
-    retrace_lambda: float = 1.0
     value_samples: int = 4           # samples of pi for E_pi Q(h', a) in the targets
 
 
 @dataclass
-class WolpertingerConfig(SVG0RetraceConfig):
+class SVG0RetraceConfig(SVG0Config):
+    retrace_lambda: float = 1.0
+
+
+@dataclass
+class WolpertingerConfig(SVG0Config):  # 1-step targets: no retrace_lambda
     kl_cost: float = 0.0
 
 

@@ -141,6 +141,7 @@ def _hvc_run(*args, cwd):
     (["algorithm.learning_rate=fast"], "algorithm.learning_rate=fast: Value 'fast' of type 'str' could not be "
                                        "converted to Float"),
     (["controller=query", "controller.k_nearest=2.5"], "converted to Integer"),
+    (["controller=query", "algorithm.retrace_lambda=0.5"], "algorithm.retrace_lambda=0.5: no key algorithm.retrace_lambda in the config"),
     (["controller=steerable", "controller.sigma_clip=wide"], "controller.sigma_clip=wide"),
 ])
 def test_cli_rejects_bad_values_with_one_line_before_work(tmp_path, args, needle):

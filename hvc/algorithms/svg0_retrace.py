@@ -27,7 +27,7 @@ from hvc.algorithms.learner import Acted, Learner, refresh_on_schedule, restore_
 from hvc.algorithms.optim import clipped_step
 from hvc.algorithms.retrace import retrace_targets, truncated_traces
 from hvc.errors import NonFiniteLoss
-from hvc.schema import GaussianControllerConfig, SVG0RetraceConfig, typed
+from hvc.schema import GaussianControllerConfig, SVG0Config, SVG0RetraceConfig, typed
 
 
 @dataclass
@@ -157,13 +157,13 @@ class RecurrentSVG0Retrace(Learner):
     schema = SVG0RetraceConfig
 
     def __init__(self, agent: HighLevelAgent, gamma: float, low: float, high: float, sigma_clip: tuple[float, float],
-                 hp: SVG0RetraceConfig = SVG0RetraceConfig()):
+                 hp: SVG0Config = SVG0RetraceConfig()):
         self.agent, self.gamma, self.hp = agent, float(gamma), hp
         self.target = copy.deepcopy(agent).requires_grad_(False)
         self.optimizer = torch.optim.Adam(agent.parameters(), lr=float(hp.learning_rate))
         self.low, self.high = float(low), float(high)
         self.sigma_clip = tuple(float(v) for v in sigma_clip)
-        self.entropy_cost, self.lam, self.kl_cost = float(hp.entropy_cost), float(hp.retrace_lambda), float(hp.kl_cost)
+        self.entropy_cost, self.kl_cost = float(hp.entropy_cost), float(hp.kl_cost)
         self.period, self.value_samples = int(hp.target_update_period), int(hp.value_samples)
         self.steps = 0
 
@@ -218,7 +218,7 @@ class RecurrentSVG0Retrace(Learner):
                                   for _ in range(self.value_samples)]).mean(0)
             log_pi = self.distribution(self.target, t_out[:-1]).log_prob(b["action"]).sum(-1)  # raw: exact
             # held steps chose nothing: their trace is lambda (ratio 1)
-            traces = truncated_traces(log_pi, b["log_mu"], self.lam, b["new_action"])
+            traces = truncated_traces(log_pi, b["log_mu"], float(self.hp.retrace_lambda), b["new_action"])
             targets = retrace_targets(b["reward"], b["discount"], q_taken, v_next, traces, self.gamma)
         q = self.agent.values(h[:-1], self.clip(b["action"]))
         critic_loss = 0.5 * ((q - targets) ** 2).mean()
