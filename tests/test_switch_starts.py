@@ -217,8 +217,8 @@ def test_an_expert_trained_with_cut_ins_hands_over_at_its_fragment_ends(tmp_path
 
 def test_a_push_moves_the_root_its_way_for_its_steps_and_ends_with_the_episode(run_env):
     """A push acts for exactly push_steps control steps: the root's velocity gains the push's
-    impulse in its direction against the same steps without it; the force is gone afterwards
-    and after stop(); a fall within a second of the push is laid to it."""
+    impulse in its direction against the same steps without it; the force is gone afterwards,
+    after stop() and in a new episode; a fall within a second of the push is laid to it."""
     from hvc.lowlevel.pushes import Pushes
 
     env, library = run_env
@@ -232,7 +232,7 @@ def test_a_push_moves_the_root_its_way_for_its_steps_and_ends_with_the_episode(r
 
         obs, out, forces = env.reset(), [], []
         for _ in range(5):
-            started = pushes.before_step(env.data)
+            started = pushes.before_step(env)
             if started:
                 pushes.probability = 0.0  # one push only
             forces.append(env.data.xfrc_applied[logic.root, :3].copy())
@@ -240,6 +240,14 @@ def test_a_push_moves_the_root_its_way_for_its_steps_and_ends_with_the_episode(r
             out.append(env.data.qvel[logic.root_dof:logic.root_dof + 3].copy())
         assert pushes.fall_follows_push() == (probability > 0)
         pushes.stop(env.data)
+        assert not env.data.xfrc_applied.any() and not pushes.fall_follows_push()
+        # a push under way when the episode ends does not carry into the next one
+        pushes.probability = probability
+        pushes.before_step(env)
+        env.step(run.act(policy_observation(env.observation())))
+        env.reset()
+        pushes.probability = 0.0
+        pushes.before_step(env)
         assert not env.data.xfrc_applied.any() and not pushes.fall_follows_push()
         return np.array(out), np.array(forces)
 

@@ -187,5 +187,5 @@ def shipped_library(clip_set: str = "go_to_target") -> Path:
     if not path.is_file():
         shipped = sorted(p.stem.removeprefix("experts_") for p in SHIPPED_DIR.glob("experts_*.npz"))
         raise ControllerUnavailable(f"no library ships for clips={clip_set}; shipped: {', '.join(shipped)}; train one with "
-                                    f"`hvc-run stage=lowlevel clips={clip_set}` and pass library=<file>")
+                                    f"`hvc-run stage=lowlevel clips={clip_set}` and pass its library file instead")
     return path

@@ -25,8 +25,12 @@ class Pushes:
         self.since_push: int | None = None  # control steps since the last push of this episode began
         self.vector = np.zeros(3)
 
-    def before_step(self, data) -> bool:
-        """Sets the force for the coming control step; whether a push started."""
+    def before_step(self, env) -> bool:
+        """Sets the force for the coming control step of `env` (a FastEnv); whether a push
+        started. A push never carries into a new episode."""
+        data = env.data
+        if env.episode_steps == 0:
+            self.stop(data)
         started = False
         if self.remaining == 0 and self.rng.random() < self.probability:
             angle = self.rng.uniform(0.0, 2.0 * np.pi)

@@ -261,7 +261,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         for _ in range(unroll):
             action, log_mu = learner.act(actor(seq_obs[-1][:obs_size]), rng)
             if pushes is not None:
-                pushed += pushes.before_step(env.data)
+                pushed += pushes.before_step(env)
             obs, reward, discount, done = env.step(action)
             seq_obs.append(stored(obs))
             seq_act.append(action)
@@ -274,7 +274,7 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
                 returns.append(env.episode_return)
                 completions.append(logic.completion)
                 counters["episodes"] += 1
-                if pushes is not None and logic.failure and pushes.fall_follows_push():
+                if pushes is not None and env.layout.logic.contact_failure(env.data) and pushes.fall_follows_push():
                     push_falls += 1
                 break
             if cutters:  # cut-ins come at the ends of its fragments, counted from the episode's start
@@ -283,8 +283,8 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
                     cut = True  # the unroll ends here, not failed: its last step bootstraps from obs
                     break
         replay.add(**pad_unroll(unroll, seq_obs, seq_act, seq_rew, seq_disc, seq_logmu))
-        if pushes is not None and (done or cut):
-            pushes.stop(env.data)
+        if pushes is not None and cut:
+            pushes.stop(env.data)  # the other skill's fragment plays unpushed
         if done:
             obs = env.reset()
         elif cut:
