@@ -208,7 +208,7 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
             f"controller={controller} needs the {controller} low-level policy and none is shipped: train it with "
             f"`hvc-run stage=lowlevel clips={controller}`, then pass libraries.{controller}=<run dir>/"
             f"experts_{controller}.npz")
-    sources = _expert_sources(cfg, set_name)
+    sources = _expert_sources(cfg)
     library, found = assemble(entries, sources)
     missing = [e for e, where in zip(entries, found) if where is None]
     if missing:
@@ -260,7 +260,7 @@ def load_library(path: str | Path):
     return ExpertLibrary.load(path)
 
 
-def _expert_sources(cfg: DictConfig, set_name: str) -> list[str]:
+def _expert_sources(cfg: DictConfig) -> list[str]:
     """Libraries to assemble a set from: those the user named, then the shipped libraries of
     the sets it includes (their experts are the ones that set was trained with), then the
     other shipped ones; steerable and switching policies are not experts of clips."""

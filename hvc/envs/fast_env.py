@@ -85,7 +85,7 @@ class FastEnv:
     target) and, for vision tasks when `render` is on, `image` (uint8 64x64x3).
     """
 
-    def __init__(self, layouts: list[Layout], task: Mapping[str, Any], body: Mapping[str, Any],
+    def __init__(self, layouts: list[Layout], task: Mapping[str, Any],
                  render_settings: Mapping[str, Any] | None = None, seed: int = 0,
                  render: bool | None = None):
         self.task_cfg = task
@@ -115,7 +115,7 @@ class FastEnv:
             env.reset()  # composer compiles a fresh layout
             layouts.append(layout_from_composer(env, task, body))
         env.close()
-        fast = cls(layouts, task, body, render_settings, seed, render)
+        fast = cls(layouts, task, render_settings, seed, render)
         if task.get("init_clips"):
             from hvc.mocap.pose_bank import PoseBank
 
@@ -131,7 +131,7 @@ class FastEnv:
     def from_composer(cls, env, task, body, render_settings=None, seed: int = 0,
                       render: bool | None = None) -> "FastEnv":
         """A fast env on the composer env's current model (state not copied), for tests."""
-        return cls([layout_from_composer(env, task, body)], task, body, render_settings, seed, render)
+        return cls([layout_from_composer(env, task, body)], task, render_settings, seed, render)
 
     @property
     def model(self) -> mujoco.MjModel:

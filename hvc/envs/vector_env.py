@@ -83,7 +83,7 @@ def _mailbox(spec: dict, semaphores, name: str | None = None) -> Mailbox:
                    semaphores, name)
 
 
-def _worker(conn, index: int, task, body, render_settings, seed: int, drive, semaphores) -> None:
+def _worker(conn, task, body, render_settings, seed: int, drive, semaphores) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     mailbox = None
     try:
@@ -166,7 +166,7 @@ class VectorEnv(BatchedEnvs):
         semaphores = [(ctx.Semaphore(0), ctx.Semaphore(0)) for _ in range(workers)]
         for i in range(workers):
             parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_worker, args=(child, i, dict(task), dict(body), plain(render_settings),
+            proc = ctx.Process(target=_worker, args=(child, dict(task), dict(body), plain(render_settings),
                                                       seed + i, drive, semaphores[i]),
                                daemon=True, name=f"hvc-env-{i}")
             proc.start()

@@ -52,7 +52,6 @@ class AsfSkeleton:
 
     bones: dict[str, AsfBone]
     children: dict[str, tuple[str, ...]]
-    length_unit: float
 
     @property
     def joint_names(self) -> tuple[str, ...]:
@@ -185,7 +184,7 @@ def parse_asf(path: str | Path) -> AsfSkeleton:
         raise ValueError(f"{path}: no :bonedata bones found; is this an ASF file?")
     if abs(length_unit - 0.45) > 1e-9:  # LENGTH_TO_METRES (dm_control's 0.056444) assumes CMU units
         raise ValueError(f"{path}: `:units length {length_unit}`; only CMU skeletons (length 0.45) are supported")
-    return AsfSkeleton(bones=bones, children=children, length_unit=length_unit)
+    return AsfSkeleton(bones=bones, children=children)
 
 
 def read_amc(path: str | Path) -> dict[str, np.ndarray]:
