@@ -374,3 +374,24 @@ def test_evaluation_rows_keep_the_sweeps_order_and_are_told_apart_when_labelled_
     assert [Path(r).name for r in table.run] == ["0", "2", "10"]
     assert table.status.tolist() == ["finished", "finished", "stopped"] and table.CMU_1.tolist() == [0.0, 0.2, 1.0]
     assert markdown(table).splitlines()[2].endswith("| a.npz | 0.0001 | finished | 0.00 | 20 | 20 | 40 | 40 |")
+
+
+def test_window_scores_read_every_run_on_the_longest_runs_grid(tmp_path, capsys):
+    """Each span weighs its own episodes once; a run stopped at half the budget has no second
+    span (NaN, not its last value), and a run ending a log short of the budget keeps its last."""
+    from hvc.analysis import window_scores
+    import plot_sweep
+
+    make_run(tmp_path, "a_s0", {"seed": 0, "fragment_len": 1}, lambda t: 0.0 if t <= 500 else 10.0)
+    make_run(tmp_path, "a_s1", {"seed": 1, "fragment_len": 1}, lambda t: 4.0, steps=990)
+    make_run(tmp_path, "b_s0", {"seed": 0, "fragment_len": 3}, lambda t: t / 100.0, steps=500, status="stopped")
+    spans = window_scores(load_runs([tmp_path]), 2, ["fragment_len"]).set_index(["fragment_len", "seed"])
+    assert list(spans.columns) == ["status", "<=500", "<=1k", "whole"]
+    assert spans.loc[(1, 0), ["<=500", "<=1k", "whole"]].tolist() == [0.0, 10.0, 5.0]
+    assert spans.loc[(1, 1), "<=1k"] == 4.0
+    assert spans.loc[(3, 0), "<=500"] == pytest.approx(np.mean([t / 100.0 for t in range(10, 501, 10)]))
+    assert math.isnan(spans.loc[(3, 0), "<=1k"])
+    with pytest.raises(ValueError, match="windows must be at least 1, got 0"):
+        window_scores(load_runs([tmp_path]), 0)
+    plot_sweep.main([str(tmp_path), "--by", "fragment_len", "--windows", "2", "-o", str(tmp_path / "w.png")])
+    assert "<=500" in capsys.readouterr().out

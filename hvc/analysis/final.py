@@ -30,6 +30,38 @@ def final_scores(frame: pd.DataFrame, last: float = 0.1) -> pd.DataFrame:
     return scores
 
 
+def window_scores(frame: pd.DataFrame, windows: int, by: Sequence[str] = ()) -> pd.DataFrame:
+    """Per run (its `by` options, seed and status): the mean return per episode in each of
+    `windows` equal spans of env steps, the spans splitting the longest run's env steps, so
+    that every run is read on the same grid, and over its whole run (`whole`): when an arm took
+    off, where final scores only say where it ended. A span a run stopped short of is NaN; 1%
+    of the grid short counts as reached (runs of one budget stop a few env steps apart)."""
+    if windows < 1:
+        raise ValueError(f"windows must be at least 1, got {windows}")
+    by = list(by)
+    check_groups(frame, by)
+    budget = frame.env_steps.max()
+    edges = [budget * i / windows for i in range(windows + 1)]
+    rows = []
+    for run, m in frame.groupby("run", sort=True):
+        head = m.iloc[0]
+        reached = m.env_steps.max()
+        row = {k: head[k] for k in by + ["seed", "status"] if k in head.index}
+        for lo, hi in zip(edges, edges[1:]):
+            row[f"<={_steps_label(hi)}"] = mean_return(m, lo, hi) if reached >= hi - 0.01 * budget else np.nan
+        row["whole"] = mean_return(m)
+        rows.append(row)
+    return pd.DataFrame(rows).sort_values([k for k in by + ["seed"] if k in rows[0]], kind="stable",
+                                          ignore_index=True) if rows else pd.DataFrame()
+
+
+def _steps_label(steps: float) -> str:
+    """200000 -> 200k, 1500000 -> 1.5M."""
+    if steps >= 1e6:
+        return f"{steps / 1e6:.3g}M"
+    return f"{steps / 1e3:.3g}k" if steps >= 1e3 else f"{steps:.3g}"
+
+
 def iqm_table(scores: pd.DataFrame, by: Sequence[str] = (), statuses: Sequence[str] = ("finished",),
               reps: int = 2000, seed: int = 0) -> pd.DataFrame:
     """Per arm of `by`: IQM of the scores of runs whose status is in `statuses`, its 95%
