@@ -1,7 +1,8 @@
 """Draw a sweep: learning curves (mean over seeds +- standard error) per arm, one panel per
 facet, and print each arm's final IQM with its bootstrap CI and how many runs finished
 (`--last 1` scores each run over all of it instead of its last 10%; `--windows 5` also prints
-each run's mean return per fifth of the env steps: when each seed took off).
+each run's mean return and mean episode length per fifth of the env steps: when each seed took
+off, how long its episodes lasted).
 
     python analysis/plot_sweep.py <sweep dir or run dirs...> --by fragment_len -o fig.png
     python analysis/plot_sweep.py outputs/sweeps/core_tasks/<time> --by controller --facet task -o fig6.png
@@ -30,7 +31,7 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--last", type=float, default=0.1,
                         help="share of each run's env steps its score averages over (1: the whole run, how fast it learned)")
     parser.add_argument("--windows", type=int, default=0,
-                        help="also print each run's mean return per this many equal spans of env steps")
+                        help="also print each run's mean return and episode length per this many equal spans of env steps")
     parser.add_argument("--title", default=None, help="the figure's title (default: the dirs' common folder)")
     parser.add_argument("-o", "--out", type=Path, default=Path("sweep.png"))
     args = parser.parse_args(argv)
@@ -48,15 +49,16 @@ def main(argv: list[str] | None = None) -> Path:
         lines = curves(frame, keys, x=args.x, points=args.points, complete=not args.partial)
         scores = final_scores(frame, last=args.last)
         table = iqm_table(scores, keys, statuses=STATUSES[:3] if args.partial else ("finished",))
-        spans = window_scores(frame, args.windows, keys) if args.windows else None
+        spans = [(of, window_scores(frame, args.windows, keys, of)) for of in ("return", "length")] if args.windows else []
     except ValueError as error:
         parser.error(str(error))
     fig = plot_curves(lines, by, args.facet, x=args.x, scores=scores, title=args.title or _title(args.dirs))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
-    if spans is not None:
-        print(spans.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    for of, table in spans:
+        print(f"mean episode {of} per span of env steps:")
+        print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     print(args.out)
     return args.out
 

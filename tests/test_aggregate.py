@@ -393,5 +393,22 @@ def test_window_scores_read_every_run_on_the_longest_runs_grid(tmp_path, capsys)
     assert math.isnan(spans.loc[(3, 0), "<=1k"])
     with pytest.raises(ValueError, match="windows must be at least 1, got 0"):
         window_scores(load_runs([tmp_path]), 0)
+    with pytest.raises(ValueError, match="of='steps': allowed return, length"):
+        window_scores(load_runs([tmp_path]), 2, of="steps")
     plot_sweep.main([str(tmp_path), "--by", "fragment_len", "--windows", "2", "-o", str(tmp_path / "w.png")])
-    assert "<=500" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "mean episode return per span" in out and "mean episode length per span" in out
+
+
+def test_episode_length_is_env_steps_per_episode_ended_in_each_span(tmp_path):
+    """One episode ends every 10 env steps, then from 500 on every 25 (rows logged every 25):
+    lengths 10 and 25, and 1000 env steps over 50 + 20 episodes for the whole run."""
+    from hvc.analysis import window_scores
+
+    run = make_run(tmp_path, "r", {"seed": 0}, lambda t: 1.0, steps=500)
+    rows = [(t, t, float(t), k, v) for i, t in enumerate(range(525, 1001, 25))
+            for k, v in (("episodes", 51 + i), ("episode_return", 1.0))]
+    pd.DataFrame(rows).to_csv(run / "metrics.csv", mode="a", header=False, index=False)
+    spans = window_scores(load_runs([tmp_path]), 2, of="length").iloc[0]
+    assert spans["<=500"] == pytest.approx(10.0) and spans["<=1k"] == pytest.approx(25.0)
+    assert spans["whole"] == pytest.approx(1000 / 70)

@@ -5,8 +5,8 @@ final performance as IQM with bootstrap confidence intervals (final.py), their p
 analysis/ are thin layers over these."""
 from hvc.analysis.curves import curves
 from hvc.analysis.final import final_scores, iqm_table, window_scores
-from hvc.analysis.returns import episode_returns, mean_return
+from hvc.analysis.returns import episode_returns, mean_episode_length, mean_return
 from hvc.analysis.runs import find_runs, load_runs
 
-__all__ = ["curves", "episode_returns", "final_scores", "find_runs", "iqm_table", "load_runs", "mean_return",
-           "window_scores"]
+__all__ = ["curves", "episode_returns", "final_scores", "find_runs", "iqm_table", "load_runs",
+           "mean_episode_length", "mean_return", "window_scores"]

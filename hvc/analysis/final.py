@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 
 from hvc.analysis.curves import check_groups
-from hvc.analysis.returns import mean_return
+from hvc.analysis.returns import mean_episode_length, mean_return
 
 
 def final_scores(frame: pd.DataFrame, last: float = 0.1) -> pd.DataFrame:
@@ -30,14 +30,19 @@ def final_scores(frame: pd.DataFrame, last: float = 0.1) -> pd.DataFrame:
     return scores
 
 
-def window_scores(frame: pd.DataFrame, windows: int, by: Sequence[str] = ()) -> pd.DataFrame:
-    """Per run (its `by` options, seed and status): the mean return per episode in each of
+def window_scores(frame: pd.DataFrame, windows: int, by: Sequence[str] = (), of: str = "return") -> pd.DataFrame:
+    """Per run (its `by` options, seed and status): the mean return per episode (`of="length"`:
+    the mean episode length, hvc.analysis.returns.mean_episode_length) in each of
     `windows` equal spans of env steps, the spans splitting the longest run's env steps, so
     that every run is read on the same grid, and over its whole run (`whole`): when an arm took
     off, where final scores only say where it ended. A span a run stopped short of is NaN; 1%
     of the grid short counts as reached (runs of one budget stop a few env steps apart)."""
     if windows < 1:
         raise ValueError(f"windows must be at least 1, got {windows}")
+    measures = {"return": mean_return, "length": mean_episode_length}
+    if of not in measures:
+        raise ValueError(f"window_scores of={of!r}: allowed {', '.join(measures)}")
+    measure = measures[of]
     by = list(by)
     check_groups(frame, by)
     budget = frame.env_steps.max()
@@ -48,8 +53,8 @@ def window_scores(frame: pd.DataFrame, windows: int, by: Sequence[str] = ()) -> 
         reached = m.env_steps.max()
         row = {k: head[k] for k in by + ["seed", "status"] if k in head.index}
         for lo, hi in zip(edges, edges[1:]):
-            row[f"<={_steps_label(hi)}"] = mean_return(m, lo, hi) if reached >= hi - 0.01 * budget else np.nan
-        row["whole"] = mean_return(m)
+            row[f"<={_steps_label(hi)}"] = measure(m, lo, hi) if reached >= hi - 0.01 * budget else np.nan
+        row["whole"] = measure(m)
         rows.append(row)
     return pd.DataFrame(rows).sort_values([k for k in by + ["seed"] if k in rows[0]], kind="stable",
                                           ignore_index=True) if rows else pd.DataFrame()

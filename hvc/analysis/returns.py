@@ -30,3 +30,15 @@ def mean_return(metrics: pd.DataFrame, lo: float = 0, hi: float = float("inf")) 
     r = episode_returns(metrics)
     r = r[(r.env_steps > lo) & (r.env_steps <= hi)]
     return float((r.value * r.n).sum() / r.n.sum()) if r.n.sum() else float("nan")
+
+
+def mean_episode_length(metrics: pd.DataFrame, lo: float = 0, hi: float = float("inf")) -> float:
+    """Env steps per episode ended in (lo, hi] env steps: the mean episode length in control
+    steps (env steps count every env's steps, episodes every env's ends), which for a walker
+    whose episodes end in a fall long before the time limit is how long it stays up."""
+    r = episode_returns(metrics)
+    before, inside = r[r.env_steps <= lo], r[(r.env_steps > lo) & (r.env_steps <= hi)]
+    if inside.empty:
+        return float("nan")
+    start = before.env_steps.iloc[-1] if len(before) else 0.0
+    return float((inside.env_steps.iloc[-1] - start) / inside.n.sum())
