@@ -56,9 +56,9 @@ def main(argv: list[str] | None = None) -> Path:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
-    for of, table in spans:
+    for of, per_span in spans:
         print(f"mean episode {of} per span of env steps:")
-        print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+        print(per_span.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     print(args.out)
     return args.out
 
