@@ -3,16 +3,18 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 ARGS ?=
 PYTEST_ARGS ?=
+# PyTorch's CPU wheels; on a GPU machine, the CUDA index pytorch.org gives for its driver
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 
 .PHONY: setup run test bench mutation
 
 setup: $(VENV)/.installed
 
-# CPU torch first: a bare torch requirement would pull a multi-GB CUDA build.
+# CPU torch first, from TORCH_INDEX: a bare torch requirement would pull a multi-GB CUDA build.
 $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet torch==2.13.0 --index-url $(TORCH_INDEX)
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $@
 

@@ -8,9 +8,9 @@ committed as its runs progress and still be drawn from a fresh clone.
 """
 from __future__ import annotations
 
+import argparse
 import gzip
 import shutil
-import sys
 from pathlib import Path
 
 import pandas as pd
@@ -47,8 +47,14 @@ def export(dest: Path, paths: list[Path]) -> list[Path]:
     return out
 
 
+def main(argv: list[str] | None = None) -> list[Path]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("target", type=Path, help="where the copies go, e.g. docs/results/<figure>/runs")
+    parser.add_argument("dirs", type=Path, nargs="+", help="run dirs, or sweep dirs holding them")
+    args = parser.parse_args(argv)
+    return export(args.target, args.dirs)
+
+
 if __name__ == "__main__":
-    if len(sys.argv) < 3:
-        raise SystemExit(__doc__)
-    for target in export(Path(sys.argv[1]), [Path(a) for a in sys.argv[2:]]):
+    for target in main():
         print(target)

@@ -10,7 +10,7 @@ library's fragments (Fig. A.4C: are extraneous behaviours ignored?).
 """
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -73,6 +73,13 @@ def plot(run_dir: Path, out: Path) -> Path:
     return out
 
 
+def main(argv: list[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dir", type=Path, help="a run dir with episodes/ and fragments.csv (record_episodes=N)")
+    parser.add_argument("out", type=Path, nargs="?", help="the figure (default: <run dir>/fragment_transitions.png)")
+    args = parser.parse_args(argv)
+    return plot(args.run_dir, args.out or args.run_dir / "fragment_transitions.png")
+
+
 if __name__ == "__main__":
-    run = Path(sys.argv[1])
-    print(plot(run, Path(sys.argv[2]) if len(sys.argv) > 2 else run / "fragment_transitions.png"))
+    print(main())

@@ -10,7 +10,7 @@ reward and episode completion during RL, with the deterministic evaluation befor
 """
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -97,16 +97,24 @@ def plot_steering(eval_dir: Path, out: Path) -> Path:
     return out
 
 
+def main(argv: list[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], usage="%(prog)s [--steering] RUN_DIR [out.png] | --compare out.png CLIP LABEL=<run dir> ...")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--steering", action="store_true", help="the turning rates of a steerable library's evaluation")
+    mode.add_argument("--compare", action="store_true", help="one clip's curves from several runs, one line each")
+    parser.add_argument("args", nargs="+", help="the run dir [out.png]; with --compare: out.png CLIP LABEL=<run dir> ...")
+    args = parser.parse_args(argv)
+    if args.compare:
+        if len(args.args) < 3 or not all("=" in a for a in args.args[2:]):
+            parser.error("--compare needs out.png CLIP LABEL=<run dir> [LABEL=<run dir> ...]")
+        runs = dict(a.split("=", 1) for a in args.args[2:])
+        return plot_compare(Path(args.args[0]), args.args[1], {label: Path(d) for label, d in runs.items()})
+    if len(args.args) > 2:
+        parser.error(f"one run dir and at most one out.png, got {len(args.args)} arguments")
+    run = Path(args.args[0])
+    out = Path(args.args[1]) if len(args.args) > 1 else run / ("steering.png" if args.steering else "learning_curves.png")
+    return plot_steering(run, out) if args.steering else plot(run, out)
+
+
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    if not args or (args[0].startswith("--") and len(args) < (4 if args[0] == "--compare" else 2)):
-        raise SystemExit(__doc__)
-    if args[:1] == ["--compare"]:
-        runs = dict(arg.split("=", 1) for arg in args[3:])
-        print(plot_compare(Path(args[1]), args[2], {label: Path(d) for label, d in runs.items()}))
-        sys.exit()
-    steering = args[:1] == ["--steering"]
-    run = Path(args[1] if steering else args[0])
-    rest = args[2:] if steering else args[1:]
-    out = Path(rest[0]) if rest else run / ("steering.png" if steering else "learning_curves.png")
-    print(plot_steering(run, out) if steering else plot(run, out))
+    print(main())

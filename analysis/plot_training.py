@@ -6,7 +6,7 @@ against env steps, with the random policy's return. For means over seeds, plot_s
 """
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -46,7 +46,13 @@ def draw(run_dirs: list[Path], points: int = 60):
     return fig
 
 
+def main(argv: list[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", type=Path, help="the figure")
+    parser.add_argument("runs", type=Path, nargs="+", help="run dirs or metrics.csv[.gz] files, one line each")
+    args = parser.parse_args(argv)
+    return plot(args.out, args.runs)
+
+
 if __name__ == "__main__":
-    if len(sys.argv) < 3:
-        raise SystemExit(__doc__)
-    print(plot(Path(sys.argv[1]), [Path(a) for a in sys.argv[2:]]))
+    print(main())

@@ -10,7 +10,7 @@ normaliser to [0, 1]. The figure shows frames with their saliency overlaid.
 """
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -72,7 +72,14 @@ def plot(run_dir: Path, episode_index: int, out: Path, columns: int = 6) -> Path
     return out
 
 
+def main(argv: list[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dir", type=Path, help="a train or record run dir with recorded episodes")
+    parser.add_argument("index", type=int, nargs="?", default=0, help="the recorded episode (default 0)")
+    parser.add_argument("out", type=Path, nargs="?", help="the figure (default: <run dir>/saliency_<index>.png)")
+    args = parser.parse_args(argv)
+    return plot(args.run_dir, args.index, args.out or args.run_dir / f"saliency_{args.index}.png")
+
+
 if __name__ == "__main__":
-    run = Path(sys.argv[1])
-    index = int(sys.argv[2]) if len(sys.argv) > 2 else 0
-    print(plot(run, index, Path(sys.argv[3]) if len(sys.argv) > 3 else run / f"saliency_{index}.png"))
+    print(main())

@@ -12,7 +12,7 @@ policy nothing to learn from.
 """
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -65,9 +65,13 @@ def sensitivity(run_dir: Path, states: int = 2000) -> dict:
             "grad_change_consistency": float(direction.mean()), "body": cfg.body}
 
 
-def main(argv: list[str]) -> None:
-    run_dir = Path(argv[0])
-    result = sensitivity(run_dir, int(argv[1]) if len(argv) > 1 else 2000)
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dir", type=Path, help="a steerable stage=lowlevel run dir with its checkpoint")
+    parser.add_argument("states", type=int, nargs="?", default=2000, help="replay states to probe (default 2000)")
+    args = parser.parse_args(argv)
+    run_dir = args.run_dir
+    result = sensitivity(run_dir, args.states)
     r = result["rate"]
     print(f"{run_dir} env_steps={result['env_steps']}")
     print(f"policy: mean |a(+{r}) - a(-{r})| = {result['mean_abs_action_change']:.3f} per action dimension")
@@ -81,4 +85,4 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()

@@ -102,3 +102,32 @@ def test_a_run_resumed_from_its_first_checkpoint_draws_its_last_random_return(tm
     m.to_csv(tmp_path / "metrics.csv", index=False)
     random = draw([tmp_path]).axes[0].lines[1]
     assert list(random.get_ydata()) == [2.0, 2.0]
+
+
+@pytest.mark.parametrize("script", ["export_runs", "fragment_transitions", "plot_lowlevel", "plot_training",
+                                    "saliency", "steering_sensitivity"])
+def test_each_analysis_script_answers_help_with_its_usage(script, capsys):
+    """--help prints the usage and exits 0 (it once was read as a run dir)."""
+    module = __import__(script)
+    with pytest.raises(SystemExit) as exit_:
+        module.main(["--help"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.startswith("usage:")
+
+
+def test_the_lowlevel_plot_routes_each_mode_and_names_a_bad_call(monkeypatch, tmp_path):
+    import plot_lowlevel
+
+    calls = []
+    monkeypatch.setattr(plot_lowlevel, "plot", lambda run, out: calls.append(("plot", run, out)))
+    monkeypatch.setattr(plot_lowlevel, "plot_steering", lambda run, out: calls.append(("steering", run, out)))
+    monkeypatch.setattr(plot_lowlevel, "plot_compare", lambda out, clip, runs: calls.append(("compare", out, clip, runs)))
+    plot_lowlevel.main(["r"])
+    plot_lowlevel.main(["--steering", "r", "s.png"])
+    plot_lowlevel.main(["--compare", "c.png", "CMU_009_06", "a=x", "b=y=z"])
+    assert calls == [("plot", Path("r"), Path("r/learning_curves.png")), ("steering", Path("r"), Path("s.png")),
+                     ("compare", Path("c.png"), "CMU_009_06", {"a": Path("x"), "b": Path("y=z")})]
+    for bad in (["--compare", "c.png", "CMU_009_06", "x"], ["r", "o.png", "extra"], ["--steering", "--compare", "r"]):
+        with pytest.raises(SystemExit) as exit_:
+            plot_lowlevel.main(bad)
+        assert exit_.value.code == 2
