@@ -1,7 +1,7 @@
 """Copy what a figure needs of run dirs into the repository, compressed: metrics.csv.gz
 (every return row; other keys such as losses thinned to one row per THIN env steps), the
-resolved config and options, summary, skills and commands; no checkpoints, TensorBoard or
-videos. A `stage=lowlevel` run gives each expert's metrics_<clip>.csv.gz and result_<clip>.json,
+resolved config and options, summary, skills, commands and evaluation report; no checkpoints,
+TensorBoard or videos. A `stage=lowlevel` run gives each expert's metrics_<clip>.csv.gz and result_<clip>.json,
 and its library once it has finished. Re-exporting a run that goes on replaces its copy, so a
 figure's data can be committed as its runs progress and still be drawn from a fresh clone.
 
@@ -18,7 +18,8 @@ import pandas as pd
 
 THIN = 1000
 RETURN_KEYS = ("episode_return", "episodes", "random_return")
-KEPT = ("config_resolved.yaml", "overrides.yaml", "summary.json", "skills.json", "commands.log", "failed.json")
+KEPT = ("config_resolved.yaml", "overrides.yaml", "summary.json", "skills.json", "commands.log", "failed.json",
+        "evaluation.txt")
 
 
 def run_dirs(paths: list[Path]) -> list[Path]:

@@ -251,8 +251,11 @@ def test_structured_policy_trains_ships_and_evaluates(tmp_path, clips, line):
             "lowlevel.batch_size=2", "lowlevel.eval_episodes=1", "lowlevel.hidden=[16]", "lowlevel.critic_hidden=[16]"]
     _run("stage=lowlevel", f"clips={clips}", "total_steps=60", *tiny, "hydra.run.dir=ll", cwd=tmp_path)
     library = tmp_path / "ll" / f"experts_{clips}.npz"
-    out = _run("stage=evaluate", f"clips={clips}", f"library={library}", "episodes=7", cwd=tmp_path).stdout
+    out = _run("stage=evaluate", f"clips={clips}", f"library={library}", "episodes=7", "hydra.run.dir=ev",
+               cwd=tmp_path).stdout
     assert line in out
+    report = (tmp_path / "ev" / "evaluation.txt").read_text()  # the same lines, kept in the run dir
+    assert report.splitlines() == [row for row in out.splitlines() if not row.startswith("[")]  # not the log's
     # the run dir itself evaluates the same way (its checkpoints, as a run in progress would)
     assert line in _run("stage=evaluate", f"clips={clips}", "library=ll", "episodes=7", cwd=tmp_path).stdout
     if clips == "steerable":  # every commanded rate of the range, each with an achieved rate

@@ -3,14 +3,16 @@
 Per clip: `episodes` episodes from random start points with the expert's mean action;
 completion (fraction of the remaining clip tracked before termination) and mean
 per-step tracking reward, next to the open-loop baseline on the same clip. One line per
-clip on stdout, a table in `metrics.csv`, and with `video=true` a video of each expert
-beside its reference (kinematic replay) from the same start. `library=` takes an `.npz` or a
-`stage=lowlevel` run dir, whose checkpoints are read as they stand (training may go on).
+clip on stdout and in the run dir's `evaluation.txt`, a table in `metrics.csv`, and with
+`video=true` a video of each expert beside its reference (kinematic replay) from the same
+start. `library=` takes an `.npz` or a `stage=lowlevel` run dir, whose checkpoints are read as
+they stand (training may go on).
 Then the library's composability: its controller under random high-level actions.
 """
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from omegaconf import DictConfig
@@ -47,7 +49,8 @@ def expert_env(cfg: DictConfig, expert, library: ExpertLibrary):
     return FastEnv.build(task, body, render, seed=cfg.seed, render=False)
 
 
-def structured_scores(cfg: DictConfig, env, expert, act, metrics: MetricsLogger) -> dict[str, float]:
+def structured_scores(cfg: DictConfig, env, expert, act, metrics: MetricsLogger,
+                      say: Callable[[str], None] = print) -> dict[str, float]:
     """The steerable policy's turning-rate response and the switching policy's completed
     transitions (Sec. 2.2); nothing for a single-clip expert."""
     clip = expert.entry["id"]
@@ -58,22 +61,22 @@ def structured_scores(cfg: DictConfig, env, expert, act, metrics: MetricsLogger)
         for row in rows:
             metrics.log(0, {f"achieved_rate/{clip}/{row['commanded_rate']:+.1f}": row["achieved_rate"],
                             f"completion/{clip}/{row['commanded_rate']:+.1f}": row["completion"]})
-            print(f"steer clip={clip} commanded_rate={row['commanded_rate']:+.2f} "
-                  f"achieved_rate={row['achieved_rate']:+.2f} completion={row['completion']:.2f} "
-                  f"fall_rate={row['fall_rate']:.2f}")
+            say(f"steer clip={clip} commanded_rate={row['commanded_rate']:+.2f} "
+                f"achieved_rate={row['achieved_rate']:+.2f} completion={row['completion']:.2f} "
+                f"fall_rate={row['fall_rate']:.2f}")
         error = [abs(r["achieved_rate"] - r["commanded_rate"]) for r in rows if np.isfinite(r["achieved_rate"])]
         return {"steering_rate_error": float(np.mean(error)) if error else float("nan")}
     if clip == "switching":
         from hvc.controllers.switching import gait_cycle_steps
 
         scores = switching_transitions(env, act, int(cfg.episodes), gait_cycle_steps(env.layout.logic.behaviours))
-        print(f"switch clip={clip} transitions_completed={scores['transitions_completed']:.2f} "
-              f"of {scores['transitions_attempted']:.0f}")
+        say(f"switch clip={clip} transitions_completed={scores['transitions_completed']:.2f} "
+            f"of {scores['transitions_attempted']:.0f}")
         names = [e.get("behaviour", e["id"]) for e in env.layout.logic.entries]
         for key in [k for k in scores if k.startswith("attempted/")]:
             a, b = (int(i) for i in key.split("/")[1].split("->"))
-            print(f"switch from={names[a]} to={names[b]} completed={scores['completed/' + key[10:]]:.2f} "
-                  f"of {scores[key]:.0f}")
+            say(f"switch from={names[a]} to={names[b]} completed={scores['completed/' + key[10:]]:.2f} "
+                f"of {scores[key]:.0f}")
         return scores
     return {}
 
@@ -102,31 +105,36 @@ def evaluated_library(cfg: DictConfig) -> tuple[ExpertLibrary, str]:
 
 def run_evaluate(cfg: DictConfig, run_dir: Path) -> dict:
     library, path = evaluated_library(cfg)
-    print(f"library={path} experts={len(library)} episodes={cfg.episodes}")
-    results = {}
-    with MetricsLogger(run_dir / "metrics.csv") as metrics:
+    with open(run_dir / "evaluation.txt", "w") as report, MetricsLogger(run_dir / "metrics.csv") as metrics:
+        def say(line: str) -> None:  # kept beside summary.json, wherever stdout went
+            print(line)
+            report.write(line + "\n")
+            report.flush()
+
+        say(f"library={path} experts={len(library)} episodes={cfg.episodes}")
+        results = {}
         for expert in library.experts:
             env = expert_env(cfg, expert, library)
             act = lambda obs, logic, e=expert: e.act(policy_observation(obs))  # noqa: E731
             scores = evaluate(env, act, cfg.episodes)
             scores.update(evaluate_open_loop(env, cfg.episodes))
             clip = expert.entry["id"]
-            scores.update(structured_scores(cfg, env, expert, act, metrics))
+            scores.update(structured_scores(cfg, env, expert, act, metrics, say))
             metrics.log(0, {f"{k}/{clip}": v for k, v in scores.items()})
             results[clip] = scores
-            print(f"eval clip={clip} completion={scores['completion']:.2f} reward={scores['reward']:.2f} "
-                  f"openloop_completion={scores['openloop_completion']:.2f} "
-                  f"openloop_reward={scores['openloop_reward']:.2f}")
-            print(f"energy clip={clip} " + " ".join(f"{k.removeprefix('energy_')}={v:.2f}" for k, v in scores.items()
-                                                   if k.startswith("energy_")))
+            say(f"eval clip={clip} completion={scores['completion']:.2f} reward={scores['reward']:.2f} "
+                f"openloop_completion={scores['openloop_completion']:.2f} "
+                f"openloop_reward={scores['openloop_reward']:.2f}")
+            say(f"energy clip={clip} " + " ".join(f"{k.removeprefix('energy_')}={v:.2f}" for k, v in scores.items()
+                                                 if k.startswith("energy_")))
             if cfg.video:
                 record_expert_video(env, expert, run_dir / f"expert_{expert.entry['behaviour']}_{clip}.mp4")
             env.close()
-        composed = composability(cfg, metrics)
+        composed = composability(cfg, metrics, say)
     return {"library": path, "clips": results, **({"composability": composed} if composed else {})}
 
 
-def composability(cfg: DictConfig, metrics: MetricsLogger) -> dict | None:
+def composability(cfg: DictConfig, metrics: MetricsLogger, say: Callable[[str], None] = print) -> dict | None:
     """The library's skills under random high-level actions (hvc.runtime.composability): one
     line for the steps until a fall, and one per clip-to-clip switch for fragments; for
     fragments the same again with each switch played on through its clip (`compose_held`)."""
@@ -140,18 +148,18 @@ def composability(cfg: DictConfig, metrics: MetricsLogger) -> dict | None:
         try:
             scores = cold_switching(composability_config(cfg, controller), int(cfg.episodes), int(cfg.seed), hold=hold)
         except ControllerUnavailable as error:  # e.g. a stage=lowlevel run dir still training: no library file yet
-            print(f"compose skipped: {error}")
+            say(f"compose skipped: {error}")
             return None
         low, high = scores["median_ci95"]
-        print(f"{prefix} controller={controller} clips={name} episodes={scores['episodes']} "
-              f"mean_steps={scores['mean_steps']:.1f} median_steps={scores['median_steps']:g} "
-              f"median_ci95={low:g}-{high:g} fall_rate={scores['fall_rate']:.2f} cap={scores['cap']}")
+        say(f"{prefix} controller={controller} clips={name} episodes={scores['episodes']} "
+            f"mean_steps={scores['mean_steps']:.1f} median_steps={scores['median_steps']:g} "
+            f"median_ci95={low:g}-{high:g} fall_rate={scores['fall_rate']:.2f} cap={scores['cap']}")
         row = {f"{prefix}_{k}": scores[k] for k in ("mean_steps", "median_steps", "fall_rate")}
         row.update({f"{prefix}_median_ci95_low": low, f"{prefix}_median_ci95_high": high})
         until = f"next {scores['horizon']} steps" + (" played on, or to the clip's end" if hold else "")
         for pair, switch in scores["switches"].items():
             a, b = pair.split("->")
-            print(f"{prefix}_switch from={a} to={b} survived={switch['survived']:.2f} of {switch['of']} ({until})")
+            say(f"{prefix}_switch from={a} to={b} survived={switch['survived']:.2f} of {switch['of']} ({until})")
             row[f"{prefix}_survived/{pair}"] = switch["survived"]
         metrics.log(0, row)
         if hold:  # the random driver's scores, with the held driver's under "held"
