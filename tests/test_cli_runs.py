@@ -444,6 +444,31 @@ def test_reuse_shipped_keeps_every_shipped_expert_of_the_same_skill_under_the_se
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
+def test_reuse_of_a_switching_library_gives_every_behaviour_its_expert():
+    """lowlevel.reuse=<the switching library>: go_to_target's four clips are its four behaviours,
+    each played by the switching policy with that behaviour's code; its env steps go with each."""
+    import numpy as np
+
+    from hvc.config import compose
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+    from hvc.mocap.clip_sets import entries_of, resolve
+    from hvc.mocap.source import find_mocap_file
+    from hvc.runtime.lowlevel_stage import reusable_experts
+
+    switching = ExpertLibrary.load(shipped_library("switching"))
+    cfg = compose(["clips=go_to_target", f"lowlevel.reuse={shipped_library('switching')}"])
+    entries = resolve(entries_of(cfg.clips), str(find_mocap_file(None, "2019")))
+    reused = reusable_experts(cfg, entries)
+    assert sorted(reused) == [0, 1, 2, 3]
+    assert [reused[i][0].entry for i in range(4)] == [e.as_dict() for e in entries]
+    assert {n for _, n in reused.values()} == set(switching.meta["provenance"]["env_steps"])
+    x = np.random.default_rng(0).normal(size=137).astype(np.float32)
+    np.testing.assert_allclose(reused[2][0].act(x), switching.experts[0].act(np.concatenate([x, np.eye(4)[2]])),
+                               atol=1e-5)
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
 def test_reuse_takes_a_list_of_libraries(tmp_path):
     """lowlevel.reuse=[<a library>, <the shipped go_to_target and forage libraries>]: heterogeneous
     forage keeps that library's expert of its turn_left (the first source holding a skill wins), the

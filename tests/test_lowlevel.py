@@ -192,6 +192,35 @@ def test_numpy_actor_equals_torch_policy():
                                atol=1e-6)
 
 
+def test_fixing_a_policys_last_inputs_folds_them_exactly_into_its_first_bias():
+    torch.manual_seed(0)
+    policy = GaussianPolicy(9, 3, [16, 16], 0.1)
+    policy.normalizer.set(np.arange(9.0), np.linspace(0.5, 3.0, 9))
+    full = NumpyPolicy.from_torch(policy)
+    code = np.array([0.0, 1.0, 0.0], np.float32)
+    held = full.with_fixed_inputs(code)
+    x = np.random.default_rng(1).normal(size=(4, 6)).astype(np.float32)
+    np.testing.assert_allclose(held(x), full(np.concatenate([x, np.tile(code, (4, 1))], 1)), atol=1e-6)
+    np.testing.assert_allclose(held(x[0]), full(np.concatenate([x[0], code])), atol=1e-6)  # the 1-D path
+    assert held.weights[0].shape == (6, 16)
+    assert not np.allclose(held(x), full.with_fixed_inputs(np.eye(3, dtype=np.float32)[0])(x))  # the code matters
+
+
+def test_a_switching_library_gives_one_expert_per_behaviour_with_its_code_held():
+    from hvc.lowlevel.library import shipped_library
+
+    switching = ExpertLibrary.load(shipped_library("switching"))
+    experts = switching.behaviour_experts()
+    assert [e.entry for e in experts] == switching.meta["switching_entries"]
+    assert [e.reference for e in experts] == switching.behaviours
+    x = np.random.default_rng(0).normal(size=(3, experts[0].policy.weights[0].shape[0])).astype(np.float32)
+    for b, expert in enumerate(experts):  # proprioception and phase, then behaviour b's 1-of-k code
+        code = np.tile(np.eye(len(experts), dtype=np.float32)[b], (3, 1))
+        np.testing.assert_allclose(expert.act(x), switching.experts[0].act(np.concatenate([x, code], 1)), atol=1e-5)
+    clip_experts = ExpertLibrary.load(shipped_library())
+    assert clip_experts.behaviour_experts() is clip_experts.experts
+
+
 def _library():
     torch.manual_seed(0)
     n = 5

@@ -94,6 +94,17 @@ class NumpyPolicy:
                    [m.bias.detach().numpy().copy() for m in linears],
                    policy.normalizer.mean.numpy().copy(), policy.normalizer.std.numpy().copy())
 
+    def with_fixed_inputs(self, tail: np.ndarray) -> "NumpyPolicy":
+        """The same policy with its last inputs held at `tail`, folded into the first layer's
+        bias: it takes the other inputs only and acts exactly as before (the switching policy
+        with one behaviour's code, played as that behaviour's expert)."""
+        tail = np.asarray(tail, np.float32)
+        n = len(tail)
+        held = np.clip((tail - self.mean_obs[-n:]) * self.inv_std[-n:], -10.0, 10.0)
+        first, rest = self.weights[0], self.weights[1:]
+        return NumpyPolicy([first[:-n], *rest], [self.biases[0] + held @ first[-n:], *self.biases[1:]],
+                           self.mean_obs[:-n], 1.0 / self.inv_std[:-n])
+
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """One observation (1-D) or a batch (2-D). The 1-D path reuses preallocated
         buffers: a step of the humanoid's expert is a few small matrix-vector products,

@@ -63,6 +63,17 @@ class ExpertLibrary:
     def clip_ids(self) -> list[str]:
         return [e.entry["id"] for e in self.experts]
 
+    def behaviour_experts(self) -> list[Expert]:
+        """A switching library's policy as one expert per behaviour: the policy with that
+        behaviour's 1-of-k code held (it sees proprioception, the phase, then the code), on the
+        behaviour's clip and reference, so fragments and query drive one network trained on the
+        switches between behaviours; a library of clip experts as it is."""
+        if not self.behaviours:
+            return self.experts
+        policy, k = self.experts[0].policy, len(self.behaviours)
+        return [Expert(entry, policy.with_fixed_inputs(np.eye(k, dtype=np.float32)[b]), reference, {})
+                for b, (entry, reference) in enumerate(zip(self.meta["switching_entries"], self.behaviours))]
+
     def subset(self, keep: Sequence[int]) -> "ExpertLibrary":
         """The experts at `keep`, with their provenance env steps (a list by position) kept in step."""
         meta = dict(self.meta)

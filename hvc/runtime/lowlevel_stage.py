@@ -63,7 +63,8 @@ def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
     (every shipped library of clip experts) or a list of those, whose experts of the same skill (clip, range,
     looping: hvc.skills.skill_key) are kept rather than retrained, under this set's behaviour
     names (the paper augments a set "without any additional work": gaps = the 4 base
-    behaviours + 8 jumps; forage's walk-and-turns serve heterogeneous forage's turns)."""
+    behaviours + 8 jumps; forage's walk-and-turns serve heterogeneous forage's turns). A
+    switching library gives one expert per behaviour (ExpertLibrary.behaviour_experts)."""
     from hvc.lowlevel.library import Expert, ExpertLibrary
     from hvc.skills import shipped_clip_libraries, skill_key
 
@@ -76,7 +77,8 @@ def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
     for path in paths:
         library = ExpertLibrary.load(path)
         steps = library.meta.get("provenance", {}).get("env_steps") or [0] * len(library.experts)
-        for expert, n in zip(library.experts, steps):
+        experts = library.behaviour_experts()
+        for expert, n in zip(experts, steps * len(experts) if library.behaviours else steps):
             by_skill.setdefault(skill_key(expert.entry), (expert, int(n)))
     found = {}
     for i, entry in enumerate(entries):
@@ -210,8 +212,9 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     library = assemble_library(cfg, run_dir, entries, mocap_file, reused)
     path = library.save(run_dir / f"experts_{cfg.clips.name}.npz")
     for e in library.experts:
-        print(f"expert clip={e.entry['id']} behaviour={e.entry['behaviour']} "
-              f"completion={e.scores['eval_completion']:.2f} reward={e.scores['eval_reward']:.2f}")
+        scored = (f"completion={e.scores['eval_completion']:.2f} reward={e.scores['eval_reward']:.2f}"
+                  if "eval_completion" in e.scores else f"not scored (`hvc-run stage=evaluate library={path}`)")
+        print(f"expert clip={e.entry['id']} behaviour={e.entry['behaviour']} {scored}")
     print(f"library={path}")
     return {"library": str(path), "experts": {f"{e.entry['behaviour']} ({e.entry['id']})": e.scores
                                              for e in library.experts}}  # one clip can give two entries
