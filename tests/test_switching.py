@@ -48,6 +48,24 @@ def test_markov_walk_follows_the_transition_graph(behaviours):
     assert np.all(np.isfinite(ref.position))
 
 
+def test_a_walk_without_transitions_is_one_behaviour_as_its_clip_has_it(behaviours):
+    """graph {b: []}: each episode one behaviour, to train one network as every behaviour's expert."""
+    graph = {0: [], 1: [], 2: [], 3: []}
+    rng = np.random.default_rng(0)
+    seen = set()
+    for _ in range(12):
+        ref, labels = markov_reference(behaviours, graph, steps=300, rng=rng)
+        b = int(labels[0])
+        seen.add(b)
+        assert np.all(labels == b) and ref.num_steps == len(labels) == behaviours[b].num_steps
+        np.testing.assert_array_equal(ref.joints, behaviours[b].joints)
+        np.testing.assert_array_equal(ref.phase, behaviours[b].phase)
+    assert seen == {0, 1, 2, 3}
+    # a walk stops at the first behaviour without next ones: run -> stand, then stand ends it
+    ref, labels = markov_reference(behaviours, {0: [], 1: [0]}, steps=300, rng=rng, start=1)
+    assert list(dict.fromkeys(labels)) == [1, 0] and ref.num_steps < 300
+
+
 def test_spliced_references_keep_each_behaviours_time_input(behaviours):
     stand, run = behaviours[0], behaviours[1]
     i, j, _ = best_cut(stand, run, min_a=30)

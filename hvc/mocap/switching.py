@@ -120,12 +120,14 @@ def markov_reference(references: Sequence[Reference], graph: Mapping[int, Sequen
                      min_stay: int = 10, max_accel: float = MAX_ACCEL) -> tuple[Reference, np.ndarray]:
     """Chains behaviours by a Markov walk on `graph` (behaviour -> allowed next ones) until
     `steps` steps; each transition cut by `best_cut` at least `min_stay` steps after the
-    current behaviour's crossfade ended. Returns the reference and the per-step behaviour index."""
+    current behaviour's crossfade ended. A behaviour with no next ones ends the walk: with
+    none anywhere, each walk is one behaviour as its clip has it, which trains one network
+    as every behaviour's expert. Returns the reference and the per-step behaviour index."""
     current = int(rng.integers(len(references))) if start is None else int(start)
     ref = references[current]
     labels = np.full(ref.num_steps, current)
     entered = 0
-    while ref.num_steps < steps:
+    while ref.num_steps < steps and graph.get(current):
         nxt = int(rng.choice(list(graph[current])))
         b = references[nxt]
         i, j, _ = best_cut(ref, b, min_a=min(entered + min_stay, ref.num_steps - 1),
