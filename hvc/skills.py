@@ -6,7 +6,8 @@ is what lets a sweep's arms differ in clip set. The order, first match wins:
 
 1. the library named for the set: `libraries.<set>=<file.npz>`;
 2. `library=<file.npz>` (one job's skills; refused in a sweep whose arms differ in skills);
-   either one `shipped`: the set's shipped library, by name;
+   either one `shipped`: the set's shipped library, by name; a switching library given to
+   fragments or query is played as one expert per behaviour;
 3. the shipped library of the set (`hvc/data/experts_<set>.npz`);
 4. fragments and query only: a library assembled from experts of other libraries (named ones
    first, then shipped ones) when every clip of the set has one: the x2 / x4 sets of
@@ -192,10 +193,12 @@ def resolve_skills(cfg: DictConfig) -> Skills | None:
         return None
     fragment_len = _fragment_len(cfg)
     named = named_library(cfg, set_name)
-    if named:
-        return Skills(controller, set_name, load_library(named), str(named), fragment_len)
-    shipped = SHIPPED_DIR / f"experts_{set_name}.npz"
     own = cfg.controller.get("skills") == "own"
+    if named:
+        library = load_library(named)
+        # a switching policy given to fragments or query: one expert per behaviour, its code held
+        return Skills(controller, set_name, library if own else library.as_clip_experts(), str(named), fragment_len)
+    shipped = SHIPPED_DIR / f"experts_{set_name}.npz"
     entries = None if own else _set_entries(cfg.clips)
     if shipped.is_file():
         library = load_library(shipped)

@@ -67,6 +67,26 @@ def test_evaluate_scores_the_experts_of_the_entries_it_is_given():
     assert library.experts[0].entry.get("steer")
 
 
+def test_a_switching_library_is_played_per_behaviour_by_fragments_and_query_only():
+    """library=<switching npz> for fragments, query and stage=evaluate of a clip set: its four
+    behaviours as experts (the policy with each code held); for the switching controller and
+    clips=switching: the policy as it is."""
+    from hvc.runtime.evaluate_stage import evaluated_library
+
+    path = SHIPPED_DIR / "experts_switching.npz"
+    switching = ExpertLibrary.load(path)
+    for controller in ("fragments", "query"):
+        skills = resolve_skills(compose([f"controller={controller}", f"library={path}"]))
+        assert [e.entry for e in skills.library.experts] == switching.meta["switching_entries"]
+        assert skills.library.meta["provenance"]["env_steps"] == switching.meta["provenance"]["env_steps"] * 4
+        assert "switching" not in skills.library.meta and len(skills.fragments) == 105
+    assert resolve_skills(compose(["controller=switching", f"library={path}"])).library.experts[0].entry["id"] == "switching"
+    library, _ = evaluated_library(compose(["stage=evaluate", "clips=go_to_target", f"library={path}"]))
+    assert [e.entry["behaviour"] for e in library.experts] == ["stand", "run", "left_turn", "right_turn"]
+    library, _ = evaluated_library(compose(["stage=evaluate", "clips=switching", f"library={path}"]))
+    assert len(library) == 1 and library.behaviours
+
+
 def test_library_shipped_names_the_sets_shipped_library_in_every_stage():
     """`library=shipped` (what `-m library=shipped,<file>` compares a new library against) is the
     set's shipped file: for stage=evaluate, for a job's skills, and for a per-set library; a set

@@ -74,6 +74,18 @@ class ExpertLibrary:
         return [Expert(entry, policy.with_fixed_inputs(np.eye(k, dtype=np.float32)[b]), reference, {})
                 for b, (entry, reference) in enumerate(zip(self.meta["switching_entries"], self.behaviours))]
 
+    def as_clip_experts(self) -> "ExpertLibrary":
+        """This library as one of clip experts (behaviour_experts), for the fragments and query
+        controllers; its provenance's env steps go with each behaviour."""
+        if not self.behaviours:
+            return self
+        experts = self.behaviour_experts()
+        meta = {k: v for k, v in self.meta.items() if k not in ("switching", "switching_entries")}
+        steps = meta.get("provenance", {}).get("env_steps")
+        if steps is not None:
+            meta["provenance"] = {**meta["provenance"], "env_steps": list(steps) * len(experts)}
+        return ExpertLibrary(experts, meta)
+
     def subset(self, keep: Sequence[int]) -> "ExpertLibrary":
         """The experts at `keep`, with their provenance env steps (a list by position) kept in step."""
         meta = dict(self.meta)

@@ -85,7 +85,8 @@ def evaluated_library(cfg: DictConfig) -> tuple[ExpertLibrary, str]:
     """(library, where from): `library=` (a file, or a stage=lowlevel run dir finished or still
     training), else the set's skills as a job would resolve them (hvc.skills): the shipped
     library only when its experts are the set's entries, so a `clips.entries=` override is
-    not scored on the experts the set shipped with; `library=shipped` names the set's shipped one."""
+    not scored on the experts the set shipped with; `library=shipped` names the set's shipped one.
+    A switching library with a set of clips is scored per behaviour, as fragments play it."""
     from hvc.skills import OWN_POLICY, skills_for_job
 
     name = str(cfg.clips.name)
@@ -94,8 +95,10 @@ def evaluated_library(cfg: DictConfig) -> tuple[ExpertLibrary, str]:
         if path.is_dir():
             from hvc.runtime.lowlevel_stage import library_from_run
 
-            return library_from_run(path, cfg.get("mocap_file")), str(path)
-        return ExpertLibrary.load(path), str(path)
+            library = library_from_run(path, cfg.get("mocap_file"))
+        else:
+            library = ExpertLibrary.load(path)
+        return (library if name in OWN_POLICY else library.as_clip_experts()), str(path)
     from hvc.runtime.composability import composability_config
 
     # resolved once: the composability measure below drives the same skills

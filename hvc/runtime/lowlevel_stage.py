@@ -64,7 +64,7 @@ def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
     looping: hvc.skills.skill_key) are kept rather than retrained, under this set's behaviour
     names (the paper augments a set "without any additional work": gaps = the 4 base
     behaviours + 8 jumps; forage's walk-and-turns serve heterogeneous forage's turns). A
-    switching library gives one expert per behaviour (ExpertLibrary.behaviour_experts)."""
+    switching library gives one expert per behaviour (ExpertLibrary.as_clip_experts)."""
     from hvc.lowlevel.library import Expert, ExpertLibrary
     from hvc.skills import shipped_clip_libraries, skill_key
 
@@ -75,10 +75,9 @@ def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
     paths = [p for s in sources for p in (shipped_clip_libraries() if s == "shipped" else [Path(s)])]
     by_skill: dict[tuple, tuple] = {}
     for path in paths:
-        library = ExpertLibrary.load(path)
+        library = ExpertLibrary.load(path).as_clip_experts()
         steps = library.meta.get("provenance", {}).get("env_steps") or [0] * len(library.experts)
-        experts = library.behaviour_experts()
-        for expert, n in zip(experts, steps * len(experts) if library.behaviours else steps):
+        for expert, n in zip(library.experts, steps):
             by_skill.setdefault(skill_key(expert.entry), (expert, int(n)))
     found = {}
     for i, entry in enumerate(entries):
