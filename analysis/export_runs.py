@@ -1,9 +1,10 @@
 """Copy what a figure needs of run dirs into the repository, compressed: metrics.csv.gz
 (every return row; other keys such as losses thinned to one row per THIN env steps), the
 resolved config and options, summary, skills, commands and evaluation report; no checkpoints,
-TensorBoard or videos. A `stage=lowlevel` run gives each expert's metrics_<clip>.csv.gz and result_<clip>.json,
-and its library once it has finished. Re-exporting a run that goes on replaces its copy, so a
-figure's data can be committed as its runs progress and still be drawn from a fresh clone.
+TensorBoard or videos. A `stage=lowlevel` run gives each expert's metrics_<clip>.csv.gz and
+result_<clip>.json, and its library once it has finished. Re-exporting a run that goes on
+replaces its copy, so a figure's data can be committed as its runs progress and still be drawn
+from a fresh clone.
 
     python analysis/export_runs.py docs/results/<figure>/runs <run or sweep dirs...>
 """
