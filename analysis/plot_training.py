@@ -13,7 +13,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from hvc.analysis.returns import episode_returns
-from hvc.analysis.runs import last_timeline
+from hvc.analysis.runs import METRICS_FILES, last_timeline, read_metrics
 
 
 def plot(out: Path, run_dirs: list[Path], points: int = 60) -> Path:
@@ -26,7 +26,9 @@ def draw(run_dirs: list[Path], points: int = 60):
     the episodes in each row), so that long runs read as curves rather than spikes."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for run in run_dirs:
-        m = last_timeline(pd.read_csv(run if run.suffix in (".csv", ".gz") else run / "metrics.csv"))
+        m = last_timeline(pd.read_csv(run)) if run.is_file() else read_metrics(run)
+        if m.empty:
+            raise SystemExit(f"no metrics in {run}: give a metrics file or a run dir holding one of {METRICS_FILES}")
         returns = episode_returns(m)
         label = run.name.removesuffix(".gz").removesuffix(".csv")
         window = max(10, len(returns) // points)

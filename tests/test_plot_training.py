@@ -33,6 +33,16 @@ def test_plot_reads_a_gzipped_metrics_file(tmp_path):
     assert plot(tmp_path / "c.png", [path]).stat().st_size > 1000
 
 
+def test_plot_reads_an_exported_run_dir_and_names_one_without_metrics(tmp_path):
+    """analysis/export_runs.py leaves only metrics.csv.gz in a run dir."""
+    from plot_training import draw
+
+    _metrics().to_csv(tmp_path / "metrics.csv.gz", index=False)
+    assert list(draw([tmp_path]).axes[1].lines[0].get_xdata()) == [100, 200]
+    with pytest.raises(SystemExit, match="no metrics in"):
+        draw([tmp_path / "missing"])
+
+
 def test_the_plotted_curve_is_the_return_per_episode_with_the_random_line(tmp_path):
     from plot_training import draw
 
