@@ -18,31 +18,34 @@ import numpy as np
 import pandas as pd
 
 
+def chosen_fragments(run_dir: Path, skip_rewarded_at_start: bool = False) -> list[np.ndarray]:
+    """The fragments the high level chose, one array per recorded episode. `skip_rewarded_at_start`
+    leaves out the episodes rewarded from their first step (on go_to_target: spawned at the target,
+    where the agent only stands), so what is left describes the walks to the target."""
+    episodes = []
+    for path in sorted((run_dir / "episodes").glob("episode_*.npz")):
+        with np.load(path) as ep:
+            if skip_rewarded_at_start and len(ep["reward"]) and ep["reward"][0] > 0:
+                continue
+            picks = ep["hl_action"][ep["new_action"]].astype(int)
+        episodes.append(picks[picks >= 0])
+    return episodes
+
+
 def transition_counts(run_dir: Path) -> tuple[np.ndarray, pd.DataFrame]:
     table = pd.read_csv(run_dir / "fragments.csv")
     n = len(table)
     counts = np.zeros((n, n))
-    for path in sorted((run_dir / "episodes").glob("episode_*.npz")):
-        with np.load(path) as ep:
-            chosen = ep["hl_action"][ep["new_action"]].astype(int)
-        chosen = chosen[chosen >= 0]
+    for chosen in chosen_fragments(run_dir):
         np.add.at(counts, (chosen[:-1], chosen[1:]), 1)
     return counts, table
 
 
 def behaviour_shares(run_dir: Path, skip_rewarded_at_start: bool = False) -> pd.DataFrame:
     """Per behaviour: `chosen`, its share of the high level's choices, and `fragments`, its share
-    of the library (what uniform choices would give). `skip_rewarded_at_start` leaves out the
-    episodes rewarded from their first step (on go_to_target: spawned at the target, where the
-    agent only stands), so the shares describe the walks to the target."""
+    of the library (what uniform choices would give); `skip_rewarded_at_start` as in `chosen_fragments`."""
     table = pd.read_csv(run_dir / "fragments.csv")
-    chosen = []
-    for path in sorted((run_dir / "episodes").glob("episode_*.npz")):
-        with np.load(path) as ep:
-            if skip_rewarded_at_start and len(ep["reward"]) and ep["reward"][0] > 0:
-                continue
-            picks = ep["hl_action"][ep["new_action"]].astype(int)
-        chosen.append(picks[picks >= 0])
+    chosen = chosen_fragments(run_dir, skip_rewarded_at_start)
     picks = np.concatenate(chosen) if chosen else np.zeros(0, int)
     behaviours = list(dict.fromkeys(table.behaviour))
     counts = pd.Series(table.behaviour.to_numpy()[picks]).value_counts().reindex(behaviours, fill_value=0)

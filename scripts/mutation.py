@@ -71,7 +71,7 @@ def git(*args: str) -> str:
     return subprocess.run(["git", *args], cwd=REPO, check=True, capture_output=True, text=True).stdout.strip()
 
 
-def prepare(workdir: Path, worktree: bool, files: list[str], tests: list[str], globs: list[str] | None) -> None:
+def prepare(workdir: Path, worktree: bool, files: list[str], tests: list[str]) -> None:
     """A scratch copy of hvc/, conf/, tests/ and pyproject.toml with the group's mutmut config."""
     if workdir.exists():
         shutil.rmtree(workdir)
@@ -164,7 +164,7 @@ def run_group(name: str, max_children: int, worktree: bool, workroot: Path) -> d
     if not present:
         raise SystemExit(f"[{name}] none of its test files exist")
     workdir = workroot / name
-    prepare(workdir, worktree, files, present, globs)
+    prepare(workdir, worktree, files, present)
     print(f"[{name}] mutmut over {files} with {present} in {workdir}", flush=True)
     start = time.monotonic()
     run_out = mutmut(workdir, "run", "--max-children", str(max_children), *(globs or []), check=False)
@@ -206,7 +206,7 @@ def count_group(name: str, worktree: bool, workroot: Path) -> int:
     """Mutants the group would run (generated with mutmut's own generator, no test run)."""
     files, tests, globs = GROUPS[name]
     workdir = workroot / f"{name}-count"
-    prepare(workdir, worktree, files, tests, globs)
+    prepare(workdir, worktree, files, tests)
     subprocess.run([sys.executable, "-c", _GENERATE], cwd=workdir, env=child_env(), check=True, capture_output=True)
     names = [m.group(1) for line in mutmut(workdir, "results", "--all", "true").splitlines()
              if (m := re.match(r"\s+(\S+): ", line))]
