@@ -28,7 +28,7 @@ bench: setup
 	$(VENV)/bin/hvc-bench
 
 # Mutation testing (issue 21): mutmut over the paper's maths and the resume path, each group
-# against its fast test files; writes docs/results/mutation/. About an hour on 2 cores; not in CI.
+# against its fast test files; writes docs/results/mutation/. Long (README: Tests); not in CI.
 # MUTATION_GROUPS="vtrace retrace" runs some groups (scripts/mutation.py --list names them).
 MUTATION_GROUPS ?=
 MUTATION_ARGS ?=

@@ -10,7 +10,7 @@ importing `hvc` from it are never touched. Results land in docs/results/mutation
 and README.md, regenerated from all group files plus `equivalent.toml`, where surviving
 mutants judged equivalent (cannot change behaviour) are listed by hand with a reason.
 
-    make mutation                         # every group (about an hour on 2 cores)
+    make mutation                         # every group
     make mutation MUTATION_GROUPS=vtrace  # one group
     python scripts/mutation.py --list     # the groups
     python scripts/mutation.py --report   # README.md from the stored results only

@@ -123,7 +123,7 @@ class RunningNormalizer(nn.Module):
 
 def _run_lstm(lstm: nn.LSTM, x: torch.Tensor, h: torch.Tensor, c: torch.Tensor):
     """A one-layer nn.LSTM over x [T, B, I]. A single step (what acting does every control
-    step) goes through torch.lstm_cell with the same weights: the same maths at a third of
+    step) goes through torch.lstm_cell with the same weights: the same maths at a fraction of
     nn.LSTM's per-call overhead (docs/results/design_measurements)."""
     if x.shape[0] != 1:
         return lstm(x, (h, c))

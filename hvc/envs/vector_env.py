@@ -9,7 +9,7 @@ processes to wake.
 
 After a start-up handshake on a pipe, commands and results go through each worker's
 shared-memory mailbox (hvc.envs.mailbox), whose waits spin before they sleep: a pipe's
-wake-ups cost a humanoid step a third of its time on a second core.
+wake-ups cost a large share of a humanoid step (docs/results/vector_env).
 
 Spawn, not fork: each worker imports mujoco and creates its GL context itself, which
 is what EGL and OSMesa need. Workers ignore SIGINT so Ctrl-C reaches only the parent,
