@@ -582,11 +582,18 @@ def test_switching_policy_distils_the_experts_of_its_behaviours(tmp_path):
 
     tiny = ["lowlevel.bc_rollouts=2", "lowlevel.distill_steps=300", "lowlevel.min_replay_unrolls=2",
             "lowlevel.batch_size=2", "lowlevel.eval_episodes=1", "lowlevel.critic_hidden=[16]", "lowlevel.log_every=20"]
-    _run("stage=lowlevel", "clips=switching", "lowlevel.warm_start=shipped", "total_steps=40", *tiny,
-         "hydra.run.dir=ll", cwd=tmp_path)
+    _run("stage=lowlevel", "clips=switching", "lowlevel.warm_start=shipped", "lowlevel.kickstart_cost=0.3",
+         "total_steps=40", *tiny, "hydra.run.dir=ll", cwd=tmp_path)
     metrics = pd.read_csv(next((tmp_path / "ll" / "experts").glob("*/metrics.csv"))).set_index("key").value
     assert metrics["distill_mse_after"] < 0.5 * metrics["distill_mse_before"]  # it regressed onto the experts
     assert "bc_mse_after" not in metrics.index
+    teacher_kl = metrics.loc[["teacher_kl"]]  # RL kept the experts in its policy loss
+    assert len(teacher_kl) >= 1 and ((teacher_kl > 0) & (teacher_kl < 1e3)).all()
+    untaught = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "clips=switching",
+                               "lowlevel.kickstart_cost=0.3", "total_steps=10"], capture_output=True, text=True,
+                              cwd=tmp_path, timeout=600)
+    lines = [line for line in untaught.stderr.splitlines() if line.strip() and "][" not in line]
+    assert untaught.returncode == 2 and len(lines) == 1 and "kickstart_cost=0.3 needs teachers" in lines[0]
     shipped = ExpertLibrary.load(shipped_library())
     three = shipped.subset(range(3)).save(tmp_path / "three.npz")
     bad = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "clips=switching",

@@ -103,6 +103,31 @@ def test_policy_loss_is_svg0_with_a_kl_to_the_target_policy():
     assert info["kl"] > 0
 
 
+def test_kickstarting_adds_the_teachers_kl_and_pulls_the_policy_to_them():
+    """kickstart_cost KL(pi || teacher) joins the policy loss at the teacher's states, and
+    updates with it bring the policy's mean there to the teacher's actions."""
+    b = _batch()
+    g = torch.Generator().manual_seed(3)
+    states = torch.randn(64, 6, generator=g)
+    teacher = (states, 0.5 * torch.tanh(states[:, :3]))  # a teacher the small policy can match
+    plain = _learner()
+    torch.manual_seed(7)
+    without = plain.update(b)["policy_loss"]
+    taught = _learner()
+    taught.kickstart_cost = 1.0
+    with torch.no_grad():
+        teacher_kl = float((((taught.policy.mean(teacher[0]) - teacher[1]) ** 2).sum(-1) / (2 * 0.01)).mean())
+    torch.manual_seed(7)
+    info = taught.update(b, teacher=teacher)
+    assert info["teacher_kl"] == pytest.approx(teacher_kl, rel=1e-5)
+    assert info["policy_loss"] == pytest.approx(without + 1.0 * teacher_kl, rel=1e-4)
+    for _ in range(200):
+        last = taught.update(b, teacher=teacher)["teacher_kl"]
+    for _ in range(200):
+        plain.update(b)
+    with torch.no_grad():
+        untaught = float((((plain.policy.mean(teacher[0]) - teacher[1]) ** 2).sum(-1) / (2 * 0.01)).mean())
+    assert last < 0.1 * teacher_kl and last < 0.1 * untaught
 def test_targets_refresh_every_period_and_learning_reduces_critic_loss():
     learner, b = _learner(), _batch()
     learner.target_update_period = 10**9  # fixed targets: the critic regresses onto them

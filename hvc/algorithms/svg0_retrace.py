@@ -65,6 +65,7 @@ class SVG0Retrace(Learner):
         self.kl_cost = float(cfg["kl_cost"])
         self.target_update_period = int(cfg["target_update_period"])
         self.value_samples = int(cfg["value_samples"])
+        self.kickstart_cost = float(cfg.get("kickstart_cost", 0.0))
         self.policy_opt = torch.optim.Adam(policy.parameters(), lr=float(cfg["policy_lr"]))
         self.critic_opt = torch.optim.Adam(critic.parameters(), lr=float(cfg["critic_lr"]))
         self.steps = 0
@@ -98,9 +99,14 @@ class SVG0Retrace(Learner):
         traces = truncated_traces(log_pi, b.log_mu, self.retrace_lambda) * b.mask
         return retrace_targets(b.rewards, b.discounts, q_taken, v_next, traces, self.gamma)
 
-    def update(self, b: Batch, train_policy: bool = True) -> dict[str, float]:
+    def update(self, b: Batch, train_policy: bool = True,
+               teacher: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict[str, float]:
         """One critic step and, unless `train_policy` is False (a fresh critic learning the
-        values of a warm-started policy before it may steer it), one policy step."""
+        values of a warm-started policy before it may steer it), one policy step. With
+        `teacher` = (observations, the teachers' actions there), the policy loss adds
+        kickstart_cost KL(pi || teacher) at those states (kickstarting, Schmitt et al. 2018;
+        the teachers' Gaussians share pi's fixed sigma), which keeps what the teachers know
+        while the RL reward asks for more."""
         with torch.no_grad():
             target_mean_all = self.target_policy.mean(b.obs)
         targets = self.critic_targets(b, target_mean_all)
@@ -114,6 +120,11 @@ class SVG0Retrace(Learner):
         q_pi = self.target_critic(obs, action)  # the target critic: the critic's step below does not change it
         kl = kl_fixed_sigma(mean, target_mean_all[:-1], self.policy.sigma)
         policy_loss = svg0_policy_loss(q_pi, weight, kl, self.kl_cost)
+        info = {}
+        if teacher is not None:
+            teacher_kl = kl_fixed_sigma(self.policy.mean(teacher[0]), teacher[1], self.policy.sigma).mean()
+            policy_loss = policy_loss + self.kickstart_cost * teacher_kl
+            info["teacher_kl"] = float(teacher_kl.detach())
         if not (torch.isfinite(critic_loss) and torch.isfinite(policy_loss)):  # before either network moves
             raise NonFiniteLoss(f"non-finite loss: critic {float(critic_loss.detach())}, policy {float(policy_loss.detach())}")
         clipped_step(self.critic_opt, critic_loss, self.critic.parameters())
@@ -122,7 +133,7 @@ class SVG0Retrace(Learner):
 
         refresh_on_schedule(self, self.target_update_period, self.sync_targets)
         return {"critic_loss": critic_loss.detach().item(), "policy_loss": policy_loss.detach().item(), "kl": float(
-            (kl.detach() * weight).sum()), "q": float((q.detach() * weight).sum())}
+            (kl.detach() * weight).sum()), "q": float((q.detach() * weight).sum()), **info}
 
     def state_dict(self) -> dict:
         return {"policy": self.policy.state_dict(), "critic": self.critic.state_dict(),

@@ -5,7 +5,8 @@
    of the reference itself (poor control alone, but it shortens RL considerably).
 2. Off-policy RL on the tracking reward: the actor (numpy copy of the policy, fixed
    noise sigma = 0.1) writes unrolls to a replay buffer from random starts along the
-   clip; the learner does SVG(0) + Retrace updates (hvc.algorithms.svg0_retrace).
+   clip; the learner does SVG(0) + Retrace updates (hvc.algorithms.svg0_retrace). A
+   switching policy may keep its teachers through RL (`kickstart_cost`, kickstarting).
 
 Everything needed to continue lives in `checkpoint.pt` (weights, optimisers, replay,
 counters, RNG states; loadable with torch.load(weights_only=True)), written atomically
@@ -78,17 +79,19 @@ def perturbed_dataset(env: FastEnv, episodes: int, sigma: float,
 
 
 def distillation_dataset(env: FastEnv, experts: list[NumpyPolicy], episodes: int, sigma: float,
-                         rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+                         rng: np.random.Generator, until_switch: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """States of Markov walks driven, with the policy's noise, by the expert of the behaviour
     in force, each labelled with that expert's action (the expert sees proprioception and its
     own phase, a prefix of the switching policy's input): regressing on them starts the
     switching policy as good as the experts are within behaviours, and cold-switching at
-    the walks' cuts, instead of from the reference's open-loop poses."""
+    the walks' cuts, instead of from the reference's open-loop poses. `until_switch` ends
+    each walk at its first cut: only states where the expert tracks its own clip."""
     logic = env.layout.logic
     obs_list, actions = [], []
     for _ in range(episodes):
         obs, done = env.reset(), False
-        while not done:
+        first = int(logic.labels[logic.t])
+        while not done and not (until_switch and int(logic.labels[logic.t]) != first):
             x = policy_observation(obs)
             expert = experts[int(logic.labels[logic.t])]
             target = expert(x[:expert.weights[0].shape[0]])
@@ -189,6 +192,11 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     checkpoint = out_dir / "checkpoint.pt"
     counters = {"env_steps": 0, "episodes": 0, "critic_only_until": 0}
     state = torch.load(checkpoint, weights_only=True) if checkpoint.exists() else None
+    teacher = None
+    if float(cfg.get("kickstart_cost", 0.0)) > 0:  # rebuilt alike on resume: its own stream, before the restore
+        teacher = tuple(torch.from_numpy(a) for a in distillation_dataset(
+            env, list(warm_start), int(cfg["bc_rollouts"]), sigma, np.random.default_rng([seed, 37]),
+            until_switch=True))
     metrics, _ = continue_metrics(out_dir / "metrics.csv", state, tensorboard=True)  # no row twice after a kill
     if state is not None:
         learner.load_state_dict(state["learner"])
@@ -296,8 +304,9 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
         if replay.size >= int(cfg["min_replay_unrolls"]):
             for _ in range(pacer.owed(1)):
                 try:
+                    taught = None if teacher is None else _sample(teacher, batch_size * unroll, rng)
                     info = learner.update(Batch(**replay.sample(batch_size, rng)),
-                                          train_policy=learner.steps >= counters["critic_only_until"])
+                                          train_policy=learner.steps >= counters["critic_only_until"], teacher=taught)
                 except NonFiniteLoss as error:
                     raise NonFiniteLoss(f"{error} at env step {counters['env_steps']} in {out_dir}; "
                                         f"the last good checkpoint is {checkpoint}") from None
@@ -354,6 +363,11 @@ def _critic_normalizer(critic: QNetwork, policy: GaussianPolicy) -> None:
     extra = critic.normalizer.mean.shape[0] - policy.normalizer.mean.shape[0]
     critic.normalizer.set(np.concatenate([policy.normalizer.mean.numpy(), np.zeros(extra, np.float32)]),
                           np.concatenate([policy.normalizer.std.numpy(), np.ones(extra, np.float32)]))
+
+
+def _sample(data: tuple[torch.Tensor, ...], size: int, rng: np.random.Generator) -> tuple[torch.Tensor, ...]:
+    idx = torch.from_numpy(rng.integers(0, len(data[0]), size))
+    return tuple(a[idx] for a in data)
 
 
 def _greedy(actor: NumpyPolicy):

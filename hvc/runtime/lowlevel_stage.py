@@ -141,6 +141,10 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     cfg_ll = OmegaConf.to_container(cfg.lowlevel, resolve=True)
     reused = reusable_experts(cfg, entries)
     warm = warm_start_policies(cfg, entries)
+    if float(cfg.lowlevel.get("kickstart_cost", 0.0)) > 0 and not isinstance(warm.get(0), list):
+        raise ConfigError(f"lowlevel.kickstart_cost={cfg.lowlevel.kickstart_cost} needs teachers: clips=switching and "
+                          f"lowlevel.warm_start=<a library of one expert per behaviour> (got clips={cfg.clips.name}, "
+                          f"lowlevel.warm_start={cfg.lowlevel.get('warm_start')})")
     jobs = []
     if cfg.clips.get("switching"):  # one policy over the whole set (the switching controller's)
         spec = OmegaConf.to_container(cfg.clips.switching, resolve=True)
