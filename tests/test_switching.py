@@ -137,6 +137,30 @@ def test_pretraining_labels_follow_each_episodes_own_walk(switching_env):
     np.testing.assert_allclose(actions[-5:], next_poses, atol=1e-6)
 
 
+def test_kickstarting_states_stop_at_each_walks_first_switch(switching_env):
+    """The teachers' states for kickstarting come from their own behaviour only: a state at or
+    after a walk's first cut would be labelled by an expert that never trained from there."""
+    from hvc.agents.mlp import GaussianPolicy, NumpyPolicy
+    from hvc.lowlevel.train import distillation_dataset
+
+    env = switching_env
+    logic, n = env.layout.logic, len(env.layout.logic.behaviours)
+    size = env.layout.proprio.size + 1  # an expert sees proprioception and its phase
+    experts = [NumpyPolicy.from_torch(GaussianPolicy(size, env.action_size, [8], 0.1)) for _ in range(n)]
+    reset, step = env.reset, env.step
+
+    def behaviours_per_walk(**kwargs) -> list[set[int]]:
+        walks, steps = [], []
+        env.reset = lambda: (walks.append(set()), reset())[1]
+        env.step = lambda action: (walks[-1].add(int(logic.labels[logic.t])), steps.append(1), step(action))[2]
+        obs, _ = distillation_dataset(env, experts, 8, 0.1, np.random.default_rng(0), **kwargs)
+        assert len(obs) == len(steps) and len(walks) == 8  # one labelled state per step taken
+        return walks
+
+    assert all(len(w) == 1 for w in behaviours_per_walk(until_switch=True))
+    assert any(len(w) > 1 for w in behaviours_per_walk())  # untruncated, these walks do switch
+
+
 def test_each_behaviour_of_a_walk_starts_from_the_body_heading(switching_env):
     from hvc.envs.tracking_reward import quat_log_norm
     from hvc.mocap.clips import root_heading
