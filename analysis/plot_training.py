@@ -24,11 +24,12 @@ def plot(out: Path, run_dirs: list[Path], points: int = 60) -> Path:
 def draw(run_dirs: list[Path], points: int = 60):
     """Each run's return per episode, averaged over about 1/`points` of its rows (weighted by
     the episodes in each row), so that long runs read as curves rather than spikes."""
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for run in run_dirs:
-        m = last_timeline(pd.read_csv(run)) if run.is_file() else read_metrics(run)
+    metrics = {run: last_timeline(pd.read_csv(run)) if run.is_file() else read_metrics(run) for run in run_dirs}
+    for run, m in metrics.items():  # every run read before a figure opens: an error leaves none open
         if m.empty:
             raise SystemExit(f"no metrics in {run}: give a metrics file or a run dir holding one of {METRICS_FILES}")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for run, m in metrics.items():
         returns = episode_returns(m)
         label = run.name.removesuffix(".gz").removesuffix(".csv")
         window = max(10, len(returns) // points)

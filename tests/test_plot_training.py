@@ -39,8 +39,12 @@ def test_plot_reads_an_exported_run_dir_and_names_one_without_metrics(tmp_path):
 
     _metrics().to_csv(tmp_path / "metrics.csv.gz", index=False)
     assert list(draw([tmp_path]).axes[1].lines[0].get_xdata()) == [100, 200]
+    import matplotlib.pyplot as plt
+
+    plt.close("all")
     with pytest.raises(SystemExit, match="no metrics in"):
-        draw([tmp_path / "missing"])
+        draw([tmp_path, tmp_path / "missing"])
+    assert not plt.get_fignums()  # the error left no figure open
 
 
 def test_the_plotted_curve_is_the_return_per_episode_with_the_random_line(tmp_path):
