@@ -194,6 +194,8 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     state = torch.load(checkpoint, weights_only=True) if checkpoint.exists() else None
     teacher = None
     if float(cfg.get("kickstart_cost", 0.0)) > 0:  # rebuilt alike on resume: its own stream, before the restore
+        if not isinstance(warm_start, list):
+            raise ValueError("kickstart_cost needs warm_start: a list of one expert per behaviour (the teachers)")
         teacher = tuple(torch.from_numpy(a) for a in distillation_dataset(
             env, list(warm_start), int(cfg["bc_rollouts"]), sigma, np.random.default_rng([seed, 37]),
             until_switch=True))
