@@ -261,6 +261,12 @@ def validate(cfg: DictConfig) -> None:
         share = cfg.lowlevel.get(key, 0.0)
         if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 <= share <= 1:
             raise ConfigError(f"lowlevel.{key}={share!r} must be a probability from 0 to 1 (e.g. 0.5)")
+    kickstart = cfg.lowlevel.get("kickstart_cost", 0.0)
+    if isinstance(kickstart, bool) or not isinstance(kickstart, (int, float)) or kickstart < 0:
+        raise ConfigError(f"lowlevel.kickstart_cost={kickstart!r} must be a weight of 0 (off) or more (e.g. 0.1)")
+    if kickstart > 0 and int(cfg.lowlevel.bc_rollouts) < 1:
+        raise ConfigError(f"lowlevel.bc_rollouts={cfg.lowlevel.bc_rollouts} gives kickstarting no teacher walks: "
+                          f"at least 1 (e.g. 600)")
     force, steps = cfg.lowlevel.get("push_force", 500.0), cfg.lowlevel.get("push_steps", 3)
     if isinstance(force, bool) or not isinstance(force, (int, float)) or force <= 0:
         raise ConfigError(f"lowlevel.push_force={force!r} must be a positive force in newtons (e.g. 500.0)")

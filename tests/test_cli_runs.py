@@ -578,17 +578,22 @@ def test_steerable_policy_warm_starts_from_the_run_expert(tmp_path):
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
 def test_switching_policy_distils_the_experts_of_its_behaviours(tmp_path):
+    import numpy as np
+
     from hvc.lowlevel.library import ExpertLibrary, shipped_library
 
     tiny = ["lowlevel.bc_rollouts=2", "lowlevel.distill_steps=300", "lowlevel.min_replay_unrolls=2",
             "lowlevel.batch_size=2", "lowlevel.eval_episodes=1", "lowlevel.critic_hidden=[16]", "lowlevel.log_every=20"]
     _run("stage=lowlevel", "clips=switching", "lowlevel.warm_start=shipped", "lowlevel.kickstart_cost=0.3",
-         "total_steps=40", *tiny, "hydra.run.dir=ll", cwd=tmp_path)
+         "lowlevel.warm_start_critic_steps=0", "total_steps=40", *tiny, "hydra.run.dir=ll", cwd=tmp_path)
     metrics = pd.read_csv(next((tmp_path / "ll" / "experts").glob("*/metrics.csv"))).set_index("key").value
     assert metrics["distill_mse_after"] < 0.5 * metrics["distill_mse_before"]  # it regressed onto the experts
     assert "bc_mse_after" not in metrics.index
     teacher_kl = metrics.loc[["teacher_kl"]]  # RL kept the experts in its policy loss
     assert len(teacher_kl) >= 1 and ((teacher_kl > 0) & (teacher_kl < 1e3)).all()
+    # the policy loss is SVG(0)'s -Q + eta KL(pi || pi_target), small here, plus 0.3 x that KL
+    loss = metrics.loc[["policy_loss"]].to_numpy() + metrics.loc[["q"]].to_numpy()
+    np.testing.assert_allclose(loss, 0.3 * teacher_kl.to_numpy(), rtol=0.1)
     untaught = subprocess.run([sys.executable, "-m", "hvc.cli", "stage=lowlevel", "clips=switching",
                                "lowlevel.kickstart_cost=0.3", "total_steps=10"], capture_output=True, text=True,
                               cwd=tmp_path, timeout=600)

@@ -133,6 +133,8 @@ def _hvc_run(*args, cwd):
     (["stage=lowlevel", "lowlevel.cut_ins=1.5"], "lowlevel.cut_ins=1.5 must be a probability from 0 to 1"),
     (["stage=lowlevel", "lowlevel.switch_starts=true"], "lowlevel.switch_starts=True must be a probability"),
     (["stage=lowlevel", "lowlevel.pushes=2"], "lowlevel.pushes=2 must be a probability from 0 to 1"),
+    (["stage=lowlevel", "lowlevel.kickstart_cost=-0.1"], "lowlevel.kickstart_cost=-0.1 must be a weight of 0"),
+    (["stage=lowlevel", "lowlevel.kickstart_cost=0.1", "lowlevel.bc_rollouts=0"], "gives kickstarting no teacher walks"),
     (["stage=lowlevel", "lowlevel.push_force=-5"], "lowlevel.push_force=-5 must be a positive force in newtons"),
     (["stage=lowlevel", "lowlevel.push_steps=1.5"], "lowlevel.push_steps=1.5 must be a whole number of control steps"),
     (["controller=fragments", "clips=go_to_target_x2", "clips.entries=[{id:CMU_131_14,behaviour:stand_c,start:42,end:84}]",

@@ -113,8 +113,12 @@ def test_kickstarting_adds_the_teachers_kl_and_pulls_the_policy_to_them():
     plain = _learner()
     torch.manual_seed(7)
     without = plain.update(b)["policy_loss"]
-    taught = _learner()
-    taught.kickstart_cost = 1.0
+    torch.manual_seed(0)
+    taught = SVG0Retrace(GaussianPolicy(6, 3, [16], 0.1), QNetwork(6, 3, [16]), {**CFG, "kickstart_cost": 1.0})
+    frozen = [p.clone() for p in taught.policy.parameters()]
+    taught.update(b, train_policy=False, teacher=teacher)  # a critic warming up: the teachers move nothing
+    assert all(torch.equal(a, p) for a, p in zip(frozen, taught.policy.parameters()))
+    taught.load_state_dict(_learner().state_dict())  # as before that step
     with torch.no_grad():
         teacher_kl = float((((taught.policy.mean(teacher[0]) - teacher[1]) ** 2).sum(-1) / (2 * 0.01)).mean())
     torch.manual_seed(7)
@@ -128,6 +132,8 @@ def test_kickstarting_adds_the_teachers_kl_and_pulls_the_policy_to_them():
     with torch.no_grad():
         untaught = float((((plain.policy.mean(teacher[0]) - teacher[1]) ** 2).sum(-1) / (2 * 0.01)).mean())
     assert last < 0.1 * teacher_kl and last < 0.1 * untaught
+
+
 def test_targets_refresh_every_period_and_learning_reduces_critic_loss():
     learner, b = _learner(), _batch()
     learner.target_update_period = 10**9  # fixed targets: the critic regresses onto them

@@ -193,12 +193,14 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     counters = {"env_steps": 0, "episodes": 0, "critic_only_until": 0}
     state = torch.load(checkpoint, weights_only=True) if checkpoint.exists() else None
     teacher = None
-    if float(cfg.get("kickstart_cost", 0.0)) > 0:  # rebuilt alike on resume: its own stream, before the restore
-        if not isinstance(warm_start, list):
+    if float(cfg.get("kickstart_cost", 0.0)) > 0:  # the same walks on resume: drawn from the env's freshly seeded
+        if not isinstance(warm_start, list):     # stream, which then goes back, so the run draws as without them
             raise ValueError("kickstart_cost needs warm_start: a list of one expert per behaviour (the teachers)")
+        fresh = env.rng.bit_generator.state
         teacher = tuple(torch.from_numpy(a) for a in distillation_dataset(
             env, list(warm_start), int(cfg["bc_rollouts"]), sigma, np.random.default_rng([seed, 37]),
             until_switch=True))
+        env.rng.bit_generator.state = fresh
     metrics, _ = continue_metrics(out_dir / "metrics.csv", state, tensorboard=True)  # no row twice after a kill
     if state is not None:
         learner.load_state_dict(state["learner"])
