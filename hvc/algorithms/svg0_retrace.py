@@ -121,7 +121,7 @@ class SVG0Retrace(Learner):
         kl = kl_fixed_sigma(mean, target_mean_all[:-1], self.policy.sigma)
         policy_loss = svg0_policy_loss(q_pi, weight, kl, self.kl_cost)
         info = {}
-        if teacher is not None:
+        if teacher is not None and train_policy:  # a critic warming up has no policy step to add it to
             teacher_kl = kl_fixed_sigma(self.policy.mean(teacher[0]), teacher[1], self.policy.sigma).mean()
             policy_loss = policy_loss + self.kickstart_cost * teacher_kl
             info["teacher_kl"] = float(teacher_kl.detach())

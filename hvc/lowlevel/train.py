@@ -113,8 +113,8 @@ def pretrain(policy: GaussianPolicy, obs: np.ndarray, actions: np.ndarray, steps
 
     before = mse()
     for _ in range(steps):
-        idx = torch.from_numpy(rng.integers(0, len(x), batch))
-        loss = ((policy.mean(x[idx]) - y[idx]) ** 2).mean()
+        xb, yb = _sample((x, y), batch, rng)
+        loss = ((policy.mean(xb) - yb) ** 2).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
