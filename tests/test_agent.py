@@ -10,6 +10,14 @@ def test_image_encoder_on_64x64_uint8():
     assert out.shape == (2, 3, 256)
 
 
+def test_image_encoder_takes_the_cameras_height_and_width():
+    enc = ImageEncoder(image_size=(40, 96))
+    assert enc.out.in_features == 32 * 5 * 12  # three stride-2 pools: 40 -> 5, 96 -> 12
+    assert enc(torch.randint(0, 255, (2, 40, 96, 3), dtype=torch.uint8)).shape == (2, 256)
+    with pytest.raises(RuntimeError):  # a frame of another size does not fit the linear layer
+        enc(torch.randint(0, 255, (2, 64, 64, 3), dtype=torch.uint8))
+
+
 def test_agent_shapes_and_episode_resets():
     spec = AgentSpec(proprio_size=136, task_size=3, action_size=105, discrete=True, lstm_size=128,
                      value_mlp=(128, 1))
@@ -752,7 +760,7 @@ def test_the_configs_image_precision_reaches_the_agent_it_builds():
     from hvc.config import ConfigError, compose, validate
     from hvc.runtime.hl_train import build_agent
 
-    envs = SimpleNamespace(observation_sizes={"proprio": 5, "task": 2, "image": 64 * 64 * 3},
+    envs = SimpleNamespace(observation_sizes={"proprio": 5, "task": 2, "image": (64, 64, 3)},
                            action_space=SimpleNamespace(discrete=True, n=7))
     for precision in ("float32", "bfloat16"):
         spec, agent, _ = build_agent(compose(["task=gaps", f"image_precision={precision}"]), envs)

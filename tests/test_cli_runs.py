@@ -116,6 +116,7 @@ def test_main_job_drives_fragments_of_a_library(tmp_path):
 
 
 @pytest.mark.parametrize("task,extra", [("go_to_target", []), ("gaps", []), ("go_to_target", ["controller=query"]),
+                                        ("gaps", ["render.width=48", "render.height=40"]),
                                         ("go_to_target", ["body=rolling_ball", "controller=end_to_end",
                                                           "task.time_limit=1.0"])])
 def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
@@ -128,11 +129,14 @@ def test_high_level_training_runs_logs_and_resumes(tmp_path, task, extra):
     _run("total_steps=80", *common, cwd=tmp_path)
     [run_dir] = list((tmp_path / "outputs" / "runs").glob("*/*"))
     metrics = pd.read_csv(run_dir / "metrics.csv")
-    losses = {"critic_loss", "policy_loss"} if extra else {"value_loss", "pg_loss"}  # continuous / discrete
+    continuous = any(e.startswith("controller=") for e in extra)  # query, end_to_end
+    losses = {"critic_loss", "policy_loss"} if continuous else {"value_loss", "pg_loss"}
     assert {"random_return", "episode_return"} | losses <= set(metrics.key)
     assert not {"new_action", "hl_action", "episode_length"} & set(metrics.key)  # no env step info in the rows
     assert metrics.learner_steps.max() > 0
     first = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    if "render.height=40" in extra:  # the encoder was built for the camera's 40x48 frames (3 pools: 5x6)
+        assert first["agent"]["image.out.weight"].shape[1] == 32 * 5 * 6
     resolved = yaml.safe_load((run_dir / "config_resolved.yaml").read_text())
     pace = resolved["algorithm"]["updates_per_unroll"]
     rounds = -(-80 // (2 * resolved["task"]["agent"]["unroll"]))  # 2 envs, one unroll each per round

@@ -1,6 +1,6 @@
 """The high-level agent (Appendix A, Fig. A.1): encoders -> LSTM core -> heads.
 
-Proprioception is encoded by one linear layer; for vision tasks a 64x64 image by an
+Proprioception is encoded by one linear layer; for vision tasks the camera image (64x64 as in the paper) by an
 IMPALA-style ResNet; both, with the previous reward and previous action, are
 concatenated into an LSTM whose size is the task's (Table A.1). The policy head is an
 LSTM of 128 followed by a linear layer (logits, or a Gaussian's mean and sigma); the
@@ -32,8 +32,8 @@ class ResidualBlock(nn.Module):
 class ImageEncoder(nn.Module):
     """IMPALA ResNet: per stage a conv, a 3x3 max-pool with stride 2 and two residual blocks."""
 
-    def __init__(self, channels: Sequence[int] = (16, 32, 32), out_size: int = 256, image_size: int = 64,
-                 precision: str = "float32"):
+    def __init__(self, channels: Sequence[int] = (16, 32, 32), out_size: int = 256,
+                 image_size: tuple[int, int] = (64, 64), precision: str = "float32"):
         super().__init__()
         if precision not in IMAGE_PRECISIONS:
             raise ValueError(f"image precision {precision!r}; allowed: {', '.join(IMAGE_PRECISIONS)}")
@@ -48,10 +48,10 @@ class ImageEncoder(nn.Module):
                        ResidualBlock(c), ResidualBlock(c)]
             c_in = c
         self.body = nn.Sequential(*layers)
-        side = image_size
+        height, width = image_size  # the camera's (render.height, render.width)
         for _ in channels:
-            side = (side + 1) // 2
-        self.out = nn.Linear(c_in * side * side, out_size)
+            height, width = (height + 1) // 2, (width + 1) // 2
+        self.out = nn.Linear(c_in * height * width, out_size)
         # Channels-last conv weights: frames arrive as HWC, and oneDNN's NHWC kernels run the
         # learner's forward + backward faster than mixed layouts (docs/results/design_measurements).
         # (load_state_dict and Adam's moments keep this layout.)
@@ -80,6 +80,7 @@ class AgentSpec:
     policy_lstm: int = 128    # Appendix A: the policy head's LSTM
     critic_takes_action: bool = False  # Q(h, a) for SVG(0) / Wolpertinger
     image_precision: str = "float32"   # the ResNet's compute: float32 or bfloat16 (ImageEncoder)
+    image_size: tuple[int, int] = (64, 64)  # (height, width) of the camera frames (the paper's 64x64)
 
 
 class RunningNormalizer(nn.Module):
@@ -138,7 +139,7 @@ class HighLevelAgent(nn.Module):
         self.spec = spec
         self.normalizer = RunningNormalizer(spec.proprio_size + spec.task_size)
         self.proprio = nn.Linear(spec.proprio_size + spec.task_size, spec.proprio_out)
-        self.image = ImageEncoder(precision=spec.image_precision) if spec.vision else None
+        self.image = ImageEncoder(image_size=spec.image_size, precision=spec.image_precision) if spec.vision else None
         core_in = spec.proprio_out + (256 if spec.vision else 0) + 1 + spec.action_size
         self.core = nn.LSTM(core_in, spec.lstm_size)
         self.policy_core = nn.LSTM(spec.lstm_size, spec.policy_lstm)

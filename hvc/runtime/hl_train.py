@@ -63,7 +63,7 @@ def unroll_fields(spec: AgentSpec, n: int, query: bool = False) -> dict[str, Fie
               **{k: Field((n,)) for k in ("log_mu", "reward", "discount", "new_action")},
               "state": Field((4, max(spec.lstm_size, spec.policy_lstm)), per_step=False)}
     if spec.vision:
-        fields["image"] = Field((n + 1, 64, 64, 3), np.uint8)
+        fields["image"] = Field((n + 1, *spec.image_size, 3), np.uint8)
     if query:
         fields["query"] = Field((n, spec.action_size))
     return fields
@@ -97,11 +97,12 @@ def build_agent(cfg: DictConfig, envs: VectorEnv, device: torch.device | str = "
     config's `_target_` names): what training and recording both act with."""
     agent_cfg = cfg.task.agent
     space = envs.action_space
+    image = envs.observation_sizes.get("image")
     spec = AgentSpec(proprio_size=envs.observation_sizes["proprio"], task_size=envs.observation_sizes["task"],
                      action_size=space.n if space.discrete else space.size, discrete=space.discrete,
                      lstm_size=int(agent_cfg.lstm_size), value_mlp=tuple(agent_cfg.value_mlp),
-                     vision="image" in envs.observation_sizes, critic_takes_action=not space.discrete,
-                     image_precision=str(cfg.image_precision))
+                     vision=image is not None, critic_takes_action=not space.discrete,
+                     image_precision=str(cfg.image_precision), image_size=tuple(image[:2]) if image else (64, 64))
     agent = HighLevelAgent(spec).to(device)
     learner_class = get_class(cfg.algorithm._target_)
     controller = None
