@@ -31,9 +31,9 @@ def converted_file(model_version: str) -> Path:
     return REPO_ROOT / "outputs" / "mocap" / f"cmu_{model_version}.h5"
 
 
-def find_mocap_file(explicit: str | None, model_version: str = "2019", use_shared_clips: bool = True) -> Path:
-    """The mocap file a run uses (the search order above); `use_shared_clips`: make or extend our
-    conversion of the shared clips where no other file is found first."""
+def find_mocap_file(explicit: str | None, model_version: str = "2019") -> Path:
+    """The mocap file a run uses (the search order above); where no other file is found first,
+    our conversion of the shared clips, made or extended on the way."""
     if explicit:
         return check_mocap_file(Path(explicit).expanduser(), f"mocap_file={explicit}")
     candidates = []
@@ -45,7 +45,7 @@ def find_mocap_file(explicit: str | None, model_version: str = "2019", use_share
     ours = converted_file(str(model_version))
     candidates.append(ours)
     for path in candidates:
-        if path == ours and use_shared_clips and SHARED_CLIPS.is_dir():
+        if path == ours and SHARED_CLIPS.is_dir():
             return update_conversion(SHARED_CLIPS, ours, str(model_version))
         if path.exists():
             return path
