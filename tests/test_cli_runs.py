@@ -505,6 +505,25 @@ def test_reuse_takes_a_list_of_libraries(tmp_path):
 
 @pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
                     reason="offline CMU clips not found")
+def test_a_library_made_from_a_switching_library_carries_its_experts_scores(tmp_path):
+    """stage=lowlevel with every expert reused: the switching policy's behaviours come without scores
+    and are scored as training scores its experts; experts that bring their own keep them."""
+    from hvc.lowlevel.library import ExpertLibrary, shipped_library
+
+    _run("stage=lowlevel", "clips=go_to_target", f"lowlevel.reuse={shipped_library('switching')}",
+         "lowlevel.eval_episodes=2", f"hydra.run.dir={tmp_path / 'played'}", cwd=tmp_path)
+    played = ExpertLibrary.load(tmp_path / "played" / "experts_go_to_target.npz")
+    for expert in played.experts:
+        assert 0 < expert.scores["eval_reward"] < 1 and expert.scores["eval_completion"] > 0
+        assert {"eval_fall_rate", "eval_steps", "eval_energy_qvel"} <= set(expert.scores)
+    _run("stage=lowlevel", "clips=go_to_target", "lowlevel.reuse=shipped", "lowlevel.eval_episodes=2",
+         f"hydra.run.dir={tmp_path / 'kept'}", cwd=tmp_path)
+    kept = ExpertLibrary.load(tmp_path / "kept" / "experts_go_to_target.npz")
+    assert [e.scores for e in kept.experts] == [e.scores for e in ExpertLibrary.load(shipped_library()).experts]
+
+
+@pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                    reason="offline CMU clips not found")
 def test_lowlevel_reuses_experts_of_another_library(tmp_path):
     """Only the clips the reused library lacks are trained; the others are kept as they are."""
     import numpy as np

@@ -213,6 +213,8 @@ def run_lowlevel(cfg: DictConfig, run_dir: Path) -> dict:
     if cfg.clips.get("switching"):
         entries = [combined]
     library = assemble_library(cfg, run_dir, entries, mocap_file, reused)
+    if not cfg.clips.get("switching"):
+        score_reused(cfg, library, sorted(reused))
     path = library.save(run_dir / f"experts_{cfg.clips.name}.npz")
     for e in library.experts:
         scored = (f"completion={e.scores['eval_completion']:.2f} reward={e.scores['eval_reward']:.2f}"
@@ -273,6 +275,26 @@ def library_from_run(run_dir: Path, mocap_file: str | None = None):
         raise HvcUserError(f"library={run_dir}: no checkpoint yet in {missing} (one is written every "
                           f"lowlevel.checkpoint_seconds={cfg.lowlevel.checkpoint_seconds})")
     return assemble_library(cfg, run_dir, entries, mocap, reused)
+
+
+def score_reused(cfg: DictConfig, library, indices) -> None:
+    """Scores the reused experts that came without scores (a switching library's behaviours, played one
+    expert each) as training scores its own: lowlevel.eval_episodes from random starts, mean action. A
+    reused expert with scores keeps them: they are its own training's."""
+    from hvc.lowlevel.evaluation import evaluate
+    from hvc.lowlevel.library import policy_observation
+    from hvc.runtime.evaluate_stage import expert_env
+
+    episodes = int(cfg.lowlevel.eval_episodes)
+    for i in indices:
+        expert = library.experts[i]
+        if expert.scores or episodes < 1:
+            continue
+        env = expert_env(cfg, expert, library)
+        try:
+            expert.scores = evaluate(env, lambda obs, logic, e=expert: e.act(policy_observation(obs)), episodes, "eval_")
+        finally:
+            env.close()
 
 
 def assemble_library(cfg: DictConfig, run_dir: Path, entries, mocap_file: Path, reused: dict | None = None):
