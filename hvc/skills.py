@@ -275,11 +275,17 @@ def _expert_sources(cfg: DictConfig) -> list[str]:
     return list(dict.fromkeys(ordered))
 
 
-def shipped_clip_libraries() -> list[Path]:
-    """The shipped libraries of clip experts (not the steerable and switching policies)."""
+def shipped_clip_libraries(clips_cfg: Mapping[str, Any] | None = None) -> list[Path]:
+    """The shipped libraries of clip experts (not the steerable and switching policies); with a clip
+    set, its own and those of the sets it includes first: a skill several libraries hold is served
+    by the library of the set it belongs to (forage's copies of the base experts may be older)."""
     from hvc.lowlevel.library import SHIPPED_DIR
 
-    return sorted(p for p in SHIPPED_DIR.glob("experts_*.npz") if p.stem.removeprefix("experts_") not in OWN_POLICY)
+    every = sorted(p for p in SHIPPED_DIR.glob("experts_*.npz") if p.stem.removeprefix("experts_") not in OWN_POLICY)
+    if clips_cfg is None:
+        return every
+    first = [SHIPPED_DIR / f"experts_{s}.npz" for s in [clips_cfg.get("name"), *_included_sets(clips_cfg)]]
+    return list(dict.fromkeys([p for p in first if p in every] + every))
 
 
 def _included_sets(clips_cfg: Mapping[str, Any]) -> list[str]:

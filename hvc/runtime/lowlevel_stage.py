@@ -60,7 +60,7 @@ def _library(source: str):
 
 def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
     """{entry index: (expert, its env steps)} from `lowlevel.reuse`: a library, `shipped`
-    (every shipped library of clip experts) or a list of those, whose experts of the same skill (clip, range,
+    (every shipped library of clip experts, the set's own first) or a list of those, whose experts of the same skill (clip, range,
     looping: hvc.skills.skill_key) are kept rather than retrained, under this set's behaviour
     names (the paper augments a set "without any additional work": gaps = the 4 base
     behaviours + 8 jumps; forage's walk-and-turns serve heterogeneous forage's turns). A
@@ -72,7 +72,7 @@ def reusable_experts(cfg: DictConfig, entries) -> dict[int, tuple]:
     if not source or cfg.clips.get("switching"):
         return {}
     sources = [source] if isinstance(source, str) else list(source)  # a list: the first holding a skill wins
-    paths = [p for s in sources for p in (shipped_clip_libraries() if s == "shipped" else [Path(s)])]
+    paths = [p for s in sources for p in (shipped_clip_libraries(cfg.clips) if s == "shipped" else [Path(s)])]
     by_skill: dict[tuple, tuple] = {}
     for path in paths:
         library = ExpertLibrary.load(path).as_clip_experts()
