@@ -35,7 +35,7 @@ from hvc.algorithms.learner import Pacer
 from hvc.algorithms.svg0_retrace import Batch, SVG0Retrace
 from hvc.envs.fast_env import FastEnv
 from hvc.errors import NonFiniteLoss
-from hvc.io.checkpoint import random_states, restore_random_states, save_checkpoint
+from hvc.io.checkpoint import random_states, restore_random_states, save_checkpoint, write_atomically
 from hvc.io.metrics import continue_metrics
 from hvc.lowlevel.evaluation import evaluate
 from hvc.lowlevel.library import policy_observation
@@ -331,8 +331,9 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
             if pushed:
                 row.update(pushes=pushed, push_falls=push_falls / pushed)
             metrics.log(counters["env_steps"], row, learner_steps=learner.steps * batch_size * unroll)
-            (out_dir / "progress.json").write_text(json.dumps({"env_steps": counters["env_steps"],
-                                                               "total_steps": total_steps, **row}))
+            # whole or not at all: the parent's progress bar and a later resume read it while it may be rewritten
+            write_atomically(out_dir / "progress.json", json.dumps({"env_steps": counters["env_steps"],
+                                                                   "total_steps": total_steps, **row}).encode())
             returns, completions, step_rewards, losses = [], [], [], []
             cuts, cut_falls, pushed, push_falls = 0, 0, 0, 0
         if time.monotonic() - last_save > float(cfg["checkpoint_seconds"]):
@@ -356,8 +357,9 @@ def train_expert(task: Mapping, body: Mapping, render: Mapping, cfg: Mapping, ou
     metrics.close()
     env.close()
     progress = json.loads((out_dir / "progress.json").read_text()) if (out_dir / "progress.json").exists() else {}
-    (out_dir / "progress.json").write_text(json.dumps({**progress, "env_steps": counters["env_steps"],
-                                                       "total_steps": total_steps, "learner_steps": learner.steps}))
+    write_atomically(out_dir / "progress.json", json.dumps({**progress, "env_steps": counters["env_steps"],
+                                                           "total_steps": total_steps,
+                                                           "learner_steps": learner.steps}).encode())
     return final
 
 
