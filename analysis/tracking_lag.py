@@ -16,14 +16,9 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from hvc.envs.tracking_reward import TERMS, TrackingFeatures, TrackingReward
+from hvc.envs.tracking import reference_features
+from hvc.envs.tracking_reward import TERMS, TrackingReward
 from hvc.mocap.reference import Reference, build_reference
-
-
-def features(ref: Reference, t: int) -> TrackingFeatures:
-    return TrackingFeatures(joints=ref.joints[t], joints_velocity=ref.joints_velocity[t],
-                            quaternion=ref.quaternion[t], end_effectors=ref.end_effectors[t],
-                            velocity=ref.velocity[t], gyro=ref.angular_velocity[t])
 
 
 def lagged_reward(ref: Reference, reward: TrackingReward, lag: int) -> dict[str, float]:
@@ -32,7 +27,7 @@ def lagged_reward(ref: Reference, reward: TrackingReward, lag: int) -> dict[str,
         raise ValueError(f"lag={lag} must be in [0, {ref.num_steps}) for a reference of {ref.num_steps} steps")
     rewards, terms = [], []
     for t in range(lag, ref.num_steps):
-        r, e = reward(features(ref, t - lag), features(ref, t))
+        r, e = reward(reference_features(ref, t - lag), reference_features(ref, t))
         rewards.append(r)
         terms.append([reward.weights[k] * e[k] for k in TERMS])
     return {"reward": float(np.mean(rewards)), **dict(zip(TERMS, np.mean(terms, axis=0).tolist()))}

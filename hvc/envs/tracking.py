@@ -26,6 +26,13 @@ from hvc.mocap.reference import Reference, build_reference
 from hvc.mocap.steering import turn_from
 from hvc.rotations import quat_conj, quat_mul, quat_to_mat, rot_z, yaw_rotate
 
+def reference_features(ref: Reference, t: int) -> TrackingFeatures:
+    """What the reward compares, for the reference at step t."""
+    return TrackingFeatures(joints=ref.joints[t], joints_velocity=ref.joints_velocity[t],
+                            quaternion=ref.quaternion[t], end_effectors=ref.end_effectors[t],
+                            velocity=ref.velocity[t], gyro=ref.angular_velocity[t])
+
+
 # Bodies allowed to touch the ground: feet and hands (the paper's termination rule).
 ALLOWED_CONTACT_BODIES = ("lfoot", "ltoes", "rfoot", "rtoes", "lhand", "lfingers", "lthumb",
                           "rhand", "rfingers", "rthumb")
@@ -149,10 +156,7 @@ class TrackingLogic(TaskLogic):
             gyro=data.qvel[self.root_dof + 3:self.root_dof + 6])
 
     def reference_features(self, t: int) -> TrackingFeatures:
-        ref = self.reference
-        return TrackingFeatures(joints=ref.joints[t], joints_velocity=ref.joints_velocity[t],
-                                quaternion=ref.quaternion[t], end_effectors=ref.end_effectors[t],
-                                velocity=ref.velocity[t], gyro=ref.angular_velocity[t])
+        return reference_features(self.reference, t)
 
     # -- TaskLogic -------------------------------------------------------------------
     def reset(self, model, data, rng):
