@@ -8,6 +8,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "analysis"))
 from tracking_lag import main  # noqa: E402
 
+pytestmark = pytest.mark.skipif(not __import__("hvc.mocap.source", fromlist=["x"]).SHARED_CLIPS.is_dir(),
+                                reason="offline CMU clips not found")
+
 
 @pytest.fixture(scope="module")
 def go_to_target():
