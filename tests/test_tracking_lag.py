@@ -44,3 +44,32 @@ def test_a_lag_past_the_clip_or_an_unknown_set_is_one_line(capsys):
     with pytest.raises(SystemExit):
         main(["gapz"])
     assert "unknown clips 'gapz'; allowed: " in capsys.readouterr().err
+
+
+def test_joints_past_the_walker_ranges_cap_the_reward():
+    import numpy as np
+    from tracking_lag import range_ceiling, references
+
+    reward, refs, _ = references("go_to_target")
+    ref = refs[0][1]
+    names = [f"j{i}" for i in range(ref.joints.shape[1])]
+    free = np.tile([-np.inf, np.inf], (ref.joints.shape[1], 1))
+    assert range_ceiling(ref, free, names, reward) == {"out_of_range": 0.0, "largest_excess": 0.0,
+                                                       "worst_joint": "j0", "qpos_floor": 0.0, "reward_ceiling": 1.0}
+    # joint 7 held 0.2 rad below everything the reference asks of it: every step is 0.2 rad past
+    tight = free.copy()
+    tight[7, 1] = ref.joints[:, 7].min() - 0.2
+    capped = range_ceiling(ref, tight, names, reward)
+    assert capped["worst_joint"] == "j7" and capped["out_of_range"] == pytest.approx(1 / ref.joints.shape[1])
+    floor = reward.weights["qpos"] * (ref.joints[:, 7] - tight[7, 1]).mean() / ref.joints.shape[1]
+    assert capped["qpos_floor"] == pytest.approx(floor) and floor > 5 * 0.2 / 56 - 1e-9
+    assert capped["largest_excess"] == pytest.approx((ref.joints[:, 7] - tight[7, 1]).max())
+    assert capped["reward_ceiling"] < 1.0
+
+
+def test_the_ranges_table_reads_the_walker_limits():
+    table = main(["go_to_target", "--ranges"])
+    assert list(table.behaviour) == ["stand", "run", "left_turn", "right_turn"]
+    assert ((table.reward_ceiling > 0) & (table.reward_ceiling <= 1)).all()
+    # the retargeted clips do bend some joints past the walker's hinges (thumbs, wrists, toes)
+    assert (table.out_of_range > 0).all() and (table.largest_excess < 3.2).all()
