@@ -26,6 +26,7 @@ from hvc.mocap.reference import Reference, build_reference
 from hvc.mocap.steering import turn_from
 from hvc.rotations import quat_conj, quat_mul, quat_to_mat, rot_z, yaw_rotate
 
+
 def reference_features(ref: Reference, t: int) -> TrackingFeatures:
     """What the reward compares, for the reference at step t."""
     return TrackingFeatures(joints=ref.joints[t], joints_velocity=ref.joints_velocity[t],
